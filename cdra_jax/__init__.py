@@ -1,0 +1,34 @@
+"""cdra_jax: differentiable kinematic calibration of modular robot arms in JAX.
+
+Implements Mustafa, Yang, Yeo and Lin, "Kinematic calibration of a 7-DOF self-calibrated
+modular cable-driven robotic arm" (ICRA 2008): the SE(3) maps of its appendix (:mod:`.lie`), the
+modular arm (:mod:`.arm`), the local-POE calibration model and its solvers
+(:mod:`.calibration`), identifiability analysis, simulation and file I/O.
+"""
+
+import importlib.metadata
+
+from . import arm as arm
+from . import calibration as calibration
+from . import identifiability as identifiability
+from . import io as io
+from . import lie as lie
+from . import simulation as simulation
+from .arm import Arm as Arm
+from .arm import Module as Module
+from .arm import apply_frame_errors as apply_frame_errors
+from .arm import forward_kinematics as forward_kinematics
+from .arm import frame_errors as frame_errors
+from .arm import tool_pose as tool_pose
+from .calibration import RESULTS as RESULTS
+from .calibration import CalibrationSolution as CalibrationSolution
+from .calibration import NoiseModel as NoiseModel
+from .calibration import calibrate_lm as calibrate_lm
+from .calibration import calibrate_paper as calibrate_paper
+from .calibration import deviation_metrics as deviation_metrics
+from .identifiability import analyze as analyze_identifiability
+from .io import default_arm as default_arm
+from .io import load_model as load_model
+from .io import save_model as save_model
+
+__version__ = importlib.metadata.version("cdra_jax")

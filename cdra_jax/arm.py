@@ -1,0 +1,310 @@
+"""A modular arm: K+1 fixed transforms interleaved with K modules (Eq. 1), and its kinematics.
+
+The tool pose in the world frame is (Eq. 1, for the paper's K = 3)::
+
+    T_OF = F_0 M_1(q_1) F_1 M_2(q_2) F_2 ... M_K(q_K) F_K
+
+with ``F_j`` the fixed transforms (``frames``; for the CDRA ``base`` = T_OBs, ``upper_arm`` =
+T_SBe, ``forearm`` = T_EBw, ``tool`` = T_WF) and ``M_i`` the module poses (``shoulder`` =
+T_BsS, ``elbow`` = T_BeE, ``wrist`` = T_BwW), each a function of the module state. Nothing here
+is specific to K = 3: a 6R industrial arm is the same chain with six revolute modules.
+
+The joint state of the whole arm is one flat vector ``q`` of length ``arm.dof``: the module
+states concatenated in chain order, spherical modules contributing their rotation vector
+``(rx, ry, rz)`` (rad), revolute modules an angle (rad) and prismatic modules a displacement
+(mm). ``arm.state_names`` gives the measurement-file column of each entry.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from . import lie
+
+ModuleKind = Literal["spherical", "revolute", "prismatic"]
+MODULE_KINDS: tuple[str, ...] = ("spherical", "revolute", "prismatic")
+_DOF = {"spherical": 3, "revolute": 1, "prismatic": 1}
+TWIST_COMPONENTS: tuple[str, ...] = ("vx", "vy", "vz", "wx", "wy", "wz")
+
+
+class Module(eqx.Module):
+    """One module of the chain: a mechanism whose state sets the pose of its moving platform.
+
+    Attributes:
+        name: module name, e.g. ``"shoulder"``.
+        kind: ``"spherical"`` (3-DOF rotation about the module origin, state = rotation vector),
+            ``"revolute"`` (rotation by ``q`` rad about ``axis`` through the origin) or
+            ``"prismatic"`` (translation by ``q`` mm along ``axis``).
+        axis: unit axis ``(3,)`` in the module base frame (ignored for spherical modules).
+        limits: per state entry ``(low, high)``, in rad or mm.
+        cable_base: cable attachment points on the module base, ``(n, 3)`` mm, or ``None``.
+        cable_platform: matching points on the moving platform, ``(n, 3)`` mm, or ``None``.
+        mass: mass (kg) of the body the module moves, or ``None``.
+        com: its centre of mass ``(3,)`` mm in the platform frame, or ``None``.
+        pretension: cable pretension (N), or ``None``.
+        stiffness: cable axial stiffness (N/mm), or ``None``.
+    """
+
+    name: str = eqx.field(static=True)
+    kind: str = eqx.field(static=True)
+    axis: Array
+    limits: tuple[tuple[float, float], ...] = eqx.field(static=True)
+    cable_base: Array | None = None
+    cable_platform: Array | None = None
+    mass: float | None = eqx.field(static=True, default=None)
+    com: Array | None = None
+    pretension: float | None = eqx.field(static=True, default=None)
+    stiffness: float | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self) -> None:
+        if self.kind not in MODULE_KINDS:
+            raise ValueError(
+                f"module {self.name!r}: unknown kind {self.kind!r}, expected one of {MODULE_KINDS}"
+            )
+        if len(self.limits) != _DOF[self.kind]:
+            raise ValueError(
+                f"module {self.name!r}: {self.kind} needs {_DOF[self.kind]} (low, high) limits, "
+                f"got {len(self.limits)}"
+            )
+        for lo, hi in self.limits:
+            if not lo < hi:
+                raise ValueError(f"module {self.name!r}: limit low {lo} is not below high {hi}")
+        if (self.cable_base is None) != (self.cable_platform is None):
+            raise ValueError(f"module {self.name!r}: cables need both base and platform points")
+        if self.cable_base is not None and self.cable_platform is not None:
+            if np.shape(self.cable_base) != np.shape(self.cable_platform) or (
+                np.ndim(self.cable_base) != 2 or np.shape(self.cable_base)[-1] != 3
+            ):
+                raise ValueError(
+                    f"module {self.name!r}: cable points must both be (n, 3), got "
+                    f"{np.shape(self.cable_base)} and {np.shape(self.cable_platform)}"
+                )
+
+    @property
+    def dof(self) -> int:
+        """Number of state entries (3 for spherical, 1 otherwise)."""
+        return _DOF[self.kind]
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Measurement-file columns of the state: ``<name>.rx/.ry/.rz`` or ``<name>.q``."""
+        if self.kind == "spherical":
+            return tuple(f"{self.name}.{c}" for c in ("rx", "ry", "rz"))
+        return (f"{self.name}.q",)
+
+    @property
+    def n_cables(self) -> int:
+        """Number of cables (0 when the model gives none)."""
+        return 0 if self.cable_base is None else int(np.shape(self.cable_base)[0])
+
+    def pose(self, q: ArrayLike) -> Array:
+        """Platform pose in the module base frame: ``(..., dof) -> (..., 4, 4)``."""
+        q = jnp.asarray(q)
+        if q.shape[-1] != self.dof:
+            raise ValueError(
+                f"module {self.name!r} ({self.kind}) takes {self.dof} state entries, "
+                f"got trailing dimension {q.shape[-1]}"
+            )
+        axis = jnp.asarray(self.axis, dtype=q.dtype)
+        zeros3 = jnp.zeros(q.shape[:-1] + (3,), dtype=q.dtype)
+        if self.kind == "spherical":
+            return lie.make_pose(lie.so3_exp(q), zeros3)
+        if self.kind == "revolute":
+            return lie.make_pose(lie.so3_exp(q * axis), zeros3)
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), q.shape[:-1] + (3, 3))
+        return lie.make_pose(eye, q * axis)
+
+
+def spherical(
+    name: str, limits: Sequence[tuple[float, float]] = ((-1.0, 1.0),) * 3, **kwargs
+) -> Module:
+    """A 3-DOF spherical module (state: rotation vector, rad)."""
+    return Module(
+        name=name, kind="spherical", axis=jnp.zeros(3), limits=_limits(limits), **kwargs
+    )
+
+
+def revolute(
+    name: str, axis: ArrayLike, limits: tuple[float, float] = (-np.pi, np.pi), **kwargs
+) -> Module:
+    """A 1-DOF revolute module about ``axis`` (state: angle, rad)."""
+    return Module(name=name, kind="revolute", axis=_unit(axis, name), limits=_limits([limits]), **kwargs)
+
+
+def prismatic(
+    name: str, axis: ArrayLike, limits: tuple[float, float] = (-100.0, 100.0), **kwargs
+) -> Module:
+    """A 1-DOF prismatic module along ``axis`` (state: displacement, mm)."""
+    return Module(name=name, kind="prismatic", axis=_unit(axis, name), limits=_limits([limits]), **kwargs)
+
+
+def _limits(limits: Sequence[Sequence[float]]) -> tuple[tuple[float, float], ...]:
+    return tuple((float(lo), float(hi)) for lo, hi in limits)
+
+
+def _unit(axis: ArrayLike, name: str) -> Array:
+    a = np.asarray(axis, dtype=float)
+    n = np.linalg.norm(a)
+    if a.shape != (3,) or not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"module {name!r}: axis must be a finite non-zero 3-vector, got {axis!r}")
+    return jnp.asarray(a / n)
+
+
+class Arm(eqx.Module):
+    """A modular arm: ``frames[0] M_1 frames[1] ... M_K frames[K]`` (Eq. 1).
+
+    Attributes:
+        frames: the K+1 fixed transforms, ``(K+1, 4, 4)``, mm.
+        modules: the K modules, module i sitting between ``frames[i]`` and ``frames[i+1]``.
+        frame_names: names of the fixed transforms (``base``, ``upper_arm``, ...).
+        name, description: free text.
+        gravity: gravity vector in the world frame, m/s^2.
+    """
+
+    frames: Array
+    modules: tuple[Module, ...]
+    frame_names: tuple[str, ...] = eqx.field(static=True)
+    name: str = eqx.field(static=True, default="arm")
+    description: str = eqx.field(static=True, default="")
+    gravity: Array = eqx.field(default_factory=lambda: jnp.array([0.0, 0.0, -9.81]))
+
+    def __check_init__(self) -> None:
+        k = len(self.modules)
+        if k < 1:
+            raise ValueError("an arm needs at least one module")
+        if tuple(np.shape(self.frames)[-3:]) != (k + 1, 4, 4):
+            raise ValueError(
+                f"arm {self.name!r}: {k} modules need {k + 1} fixed frames of shape (4, 4), "
+                f"got frames of shape {np.shape(self.frames)}"
+            )
+        if len(self.frame_names) != k + 1:
+            raise ValueError(f"arm {self.name!r}: need {k + 1} frame names, got {self.frame_names}")
+        names = list(self.frame_names) + [m.name for m in self.modules]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"arm {self.name!r}: frame and module names must be unique: {dup}")
+
+    @property
+    def dof(self) -> int:
+        """Total number of state entries (7 for the CDRA)."""
+        return sum(m.dof for m in self.modules)
+
+    @property
+    def module_names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.modules)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Column name of each entry of the flat joint state."""
+        return tuple(n for m in self.modules for n in m.state_names)
+
+    @property
+    def n_params(self) -> int:
+        """Number of calibration parameters, ``6 (K + 1)`` (Eq. 8: 24 for the CDRA)."""
+        return 6 * len(self.frame_names)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """Calibration parameter names ``<frame>.<vx|vy|vz|wx|wy|wz>`` in the order of X (Eq. 8)."""
+        return tuple(f"{f}.{c}" for f in self.frame_names for c in TWIST_COMPONENTS)
+
+    @property
+    def state_limits(self) -> np.ndarray:
+        """``(dof, 2)`` lower and upper bound of each state entry."""
+        return np.array([lim for m in self.modules for lim in m.limits], dtype=float)
+
+    def module(self, name: str) -> Module:
+        """The module called ``name`` (``ValueError`` naming the known ones otherwise)."""
+        for m in self.modules:
+            if m.name == name:
+                return m
+        raise ValueError(f"arm {self.name!r} has no module {name!r}; modules: {self.module_names}")
+
+    def frame_index(self, name: str) -> int:
+        """Position of the fixed frame ``name`` in the chain."""
+        if name not in self.frame_names:
+            raise ValueError(f"arm {self.name!r} has no frame {name!r}; frames: {self.frame_names}")
+        return self.frame_names.index(name)
+
+    def split_state(self, q: ArrayLike) -> list[Array]:
+        """Split a flat state ``(..., dof)`` into the per-module states."""
+        q = jnp.asarray(q)
+        if q.shape[-1] != self.dof:
+            raise ValueError(
+                f"arm {self.name!r} has {self.dof} state entries {self.state_names}, "
+                f"got trailing dimension {q.shape[-1]}"
+            )
+        out, i = [], 0
+        for m in self.modules:
+            out.append(q[..., i : i + m.dof])
+            i += m.dof
+        return out
+
+    def with_frames(self, frames: ArrayLike) -> Arm:
+        """The same arm with other fixed transforms ``(K+1, 4, 4)``."""
+        return eqx.tree_at(lambda a: a.frames, self, jnp.asarray(frames))
+
+
+def module_poses(arm: Arm, q: ArrayLike) -> Array:
+    """Module platform poses ``(..., K, 4, 4)`` from the flat state ``q (..., dof)``."""
+    return jnp.stack([m.pose(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)], -3)
+
+
+def chain(frames: ArrayLike, poses: ArrayLike) -> tuple[Array, Array]:
+    """Product of Eq. 1 from fixed frames and module poses.
+
+    Args:
+        frames: ``(..., K+1, 4, 4)`` fixed transforms.
+        poses: ``(..., K, 4, 4)`` module platform poses.
+
+    Returns:
+        ``(tool, after)``: the tool pose ``(..., 4, 4)`` in the world frame and the world pose
+        after each module ``(..., K, 4, 4)`` (T_OS, T_OE, T_OW of Eq. 4 for the CDRA).
+    """
+    frames = jnp.asarray(frames)
+    poses = jnp.asarray(poses)
+    k = poses.shape[-3]
+    T = frames[..., 0, :, :]
+    after = []
+    for i in range(k):
+        T = T @ poses[..., i, :, :]
+        after.append(T)
+        T = T @ frames[..., i + 1, :, :]
+    return T, jnp.stack(after, axis=-3)
+
+
+def forward_kinematics(arm: Arm, q: ArrayLike) -> tuple[Array, Array]:
+    """Tool pose and the pose after each module for states ``q (..., dof)`` (Eqs. 1 and 4).
+
+    Returns:
+        ``(tool, after)`` with ``tool (..., 4, 4)`` the world pose of the tool frame (T_OF) and
+        ``after (..., K, 4, 4)`` the world pose after each module (T_OS, T_OE, T_OW).
+    """
+    return chain(arm.frames, module_poses(arm, q))
+
+
+def tool_pose(arm: Arm, q: ArrayLike) -> Array:
+    """World pose of the tool frame, ``(..., 4, 4)`` (Eq. 1)."""
+    return forward_kinematics(arm, q)[0]
+
+
+def apply_frame_errors(arm: Arm, errors: ArrayLike) -> Arm:
+    """Left-multiply each fixed frame by the exponential of its error twist (Eqs. 11-14).
+
+    ``errors`` is the flat parameter vector ``X (6 (K+1),)`` of Eq. 8 (ordered as
+    ``arm.param_names``) or ``(K+1, 6)``; ``F_j -> exp(hat(X_j)) F_j``.
+    """
+    X = jnp.asarray(errors).reshape(len(arm.frame_names), 6)
+    return arm.with_frames(lie.se3_exp(X) @ arm.frames)
+
+
+def frame_errors(calibrated: Arm, nominal: Arm) -> Array:
+    """Error twists of the calibrated frames w.r.t. the nominal ones (Eqs. 15-18): ``(K+1, 6)``."""
+    return lie.se3_log(calibrated.frames @ lie.inverse(nominal.frames))

@@ -1,0 +1,138 @@
+"""The local-POE calibration model (Eqs. 5-9) and the deviation metrics (Eqs. 20-21).
+
+The unknowns are the error twists of the K+1 fixed transforms, stacked as
+``X = [dt_0; ...; dt_K]`` (``6 (K+1)``, Eq. 8; each twist ``(v, w)``, mm and rad), ordered as
+``arm.param_names``. Errors are left-multiplied, ``F_j^a = exp(hat(dt_j)) F_j`` (Eqs. 11-14).
+
+For one pose the residual is the world-frame twist ``Y = log(T_meas T_model^-1)^v`` (Eq. 7) and
+the calibration Jacobian is ``D = [I, Ad(P_1), ..., Ad(P_K)]`` (Eq. 8) with ``P_i`` the world
+pose after module ``i`` (T_OS, T_OE, T_OW for the CDRA), so that ``Y ~= D X`` to first order.
+
+Noise weighting. A measured tool pose with a position error ``dp`` (mm) and a world-frame
+rotation error ``dth`` (rad) gives ``Y = [dp + hat(p) dth; dth]`` to first order, where ``p``
+is the tool position: the translational part of the twist mixes position noise with
+orientation noise lever-armed by ``|p|`` (hundreds of mm). :class:`NoiseModel` whitens this:
+``r = diag(1/s_pos, 1/s_rot) [[I, -hat(p)], [0, I]] Y``, so that each entry of ``r`` has unit
+variance when the measurement noise is isotropic Gaussian with those standard deviations. With
+no noise model the paper's unweighted form ``r = Y`` is used.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+from .. import lie
+from ..arm import Arm, chain, module_poses
+
+
+class NoiseModel(eqx.Module):
+    """Isotropic measurement noise of the tool pose: position (mm) and orientation (rad) std.
+
+    Used to weight the residual (see the module docstring) and by the simulator.
+    """
+
+    position_mm: float | Array
+    rotation_rad: float | Array
+
+    def __check_init__(self) -> None:
+        import numpy as np
+
+        for name, v in (("position_mm", self.position_mm), ("rotation_rad", self.rotation_rad)):
+            if isinstance(v, int | float) and not (np.isfinite(v) and v > 0):
+                raise ValueError(f"NoiseModel.{name} must be a positive finite number, got {v!r}")
+
+
+def residual_twist(measured: ArrayLike, model: ArrayLike) -> Array:
+    """``Y = log(T_meas T_model^-1)^v`` (Eq. 7): ``(..., 4, 4) x2 -> (..., 6)``, world frame."""
+    return lie.se3_log(jnp.asarray(measured) @ lie.inverse(model))
+
+
+def whitening(measured: ArrayLike, noise: NoiseModel | None) -> Array | None:
+    """Per-pose whitening matrices ``G (..., 6, 6)`` for the residual, or ``None`` (paper form)."""
+    if noise is None:
+        return None
+    measured = jnp.asarray(measured)
+    p = lie.translation(measured)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=measured.dtype), p.shape[:-1] + (3, 3))
+    sp = jnp.asarray(noise.position_mm, dtype=measured.dtype)
+    sr = jnp.asarray(noise.rotation_rad, dtype=measured.dtype)
+    top = jnp.concatenate([eye / sp, -lie.hat3(p) / sp], axis=-1)
+    bottom = jnp.concatenate([jnp.zeros_like(eye), eye / sr], axis=-1)
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+def calibration_jacobian(after: ArrayLike) -> Array:
+    """``D = [I, Ad(P_1), ..., Ad(P_K)]`` (Eq. 8) from the poses after each module.
+
+    Args:
+        after: ``(..., K, 4, 4)`` world pose after each module.
+
+    Returns:
+        ``(..., 6, 6 (K+1))``.
+    """
+    after = jnp.asarray(after)
+    ads = lie.adjoint(after)  # (..., K, 6, 6)
+    eye = jnp.broadcast_to(jnp.eye(6, dtype=after.dtype), ads.shape[:-3] + (1, 6, 6))
+    blocks = jnp.concatenate([eye, ads], axis=-3)  # (..., K+1, 6, 6)
+    return jnp.concatenate([blocks[..., j, :, :] for j in range(blocks.shape[-3])], axis=-1)
+
+
+def stacked_system(
+    arm: Arm, q: ArrayLike, measured: ArrayLike, noise: NoiseModel | None = None
+) -> tuple[Array, Array]:
+    """Stacked, optionally whitened, ``(Y~, D~)`` of Eq. 9 at the current model.
+
+    Args:
+        arm: current model.
+        q: ``(m, dof)`` module states.
+        measured: ``(m, 4, 4)`` measured tool poses.
+
+    Returns:
+        ``Y~ (6m,)`` and ``D~ (6m, 6(K+1))``.
+    """
+    tool, after = chain(arm.frames, module_poses(arm, q))
+    return _stack(tool, after, jnp.asarray(measured), whitening(measured, noise))
+
+
+def _stack(tool: Array, after: Array, measured: Array, G: Array | None) -> tuple[Array, Array]:
+    Y = residual_twist(measured, tool)
+    D = calibration_jacobian(after)
+    if G is not None:
+        Y = jnp.einsum("...ij,...j->...i", G, Y)
+        D = G @ D
+    n = D.shape[-1]
+    return Y.reshape(Y.shape[:-2] + (-1,)), D.reshape(D.shape[:-3] + (-1, n))
+
+
+def deviation_metrics(measured: ArrayLike, model: ArrayLike) -> tuple[Array, Array]:
+    """Deviation metrics between measured ('a') and model ('c') tool poses over the pose axis.
+
+    ``dp = sqrt(mean |P_a - P_c|^2)`` (Eq. 20, mm) and
+    ``dR = sqrt(mean |log(R_a^-1 R_c)^v|^2)`` (Eq. 21, rad).
+
+    Args:
+        measured, model: ``(..., m, 4, 4)``.
+
+    Returns:
+        ``(dp, dR)``, each of shape ``(...)``.
+    """
+    measured = jnp.asarray(measured)
+    model = jnp.asarray(model)
+    dpos = lie.translation(measured) - lie.translation(model)
+    Rrel = jnp.swapaxes(lie.rotation(measured), -1, -2) @ lie.rotation(model)
+    w = lie.so3_log(Rrel)
+    dp = jnp.sqrt(jnp.mean(jnp.sum(dpos * dpos, axis=-1), axis=-1))
+    dR = jnp.sqrt(jnp.mean(jnp.sum(w * w, axis=-1), axis=-1))
+    return dp, dR
+
+
+def pose_errors(measured: ArrayLike, model: ArrayLike) -> tuple[Array, Array]:
+    """Per-pose position error norm (mm) and rotation error angle (rad): each ``(..., m)``."""
+    measured = jnp.asarray(measured)
+    model = jnp.asarray(model)
+    dpos = jnp.linalg.norm(lie.translation(measured) - lie.translation(model), axis=-1)
+    Rrel = jnp.swapaxes(lie.rotation(measured), -1, -2) @ lie.rotation(model)
+    return dpos, lie.rotation_angle(Rrel)

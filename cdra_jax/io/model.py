@@ -1,0 +1,301 @@
+"""Model files (TOML): read and write an :class:`~cdra_jax.arm.Arm`; the embedded default CDRA.
+
+Format (see the README for a complete example)::
+
+    name = "cdra"
+    description = "..."              # optional
+    gravity = [0.0, 0.0, -9.81]      # optional, m/s^2, world frame
+
+    [[frames]]                       # K+1 fixed transforms in chain order
+    name = "base"
+    xyz = [0.0, 0.0, 50.0]           # mm
+    rotvec = [0.0, 0.0, 0.0]         # rad   (or: matrix = [[...4 rows of 4...]])
+
+    [[modules]]                      # K modules; module i sits between frames[i] and frames[i+1]
+    name = "elbow"
+    kind = "revolute"                # spherical | revolute | prismatic
+    axis = [0.0, 1.0, 0.0]           # revolute / prismatic only
+    limits = [[0.0, 2.0]]            # one (low, high) per state entry
+    # optional: cables = [{ base = [x, y, z], platform = [x, y, z] }, ...] (mm),
+    #           mass (kg), com (mm, platform frame), pretension (N), stiffness (N/mm)
+
+Frames are written back as ``xyz`` + ``rotvec`` (floats printed with all 17 significant digits,
+reproducing the matrix to ~1e-16), or as ``matrix`` with ``exact=True`` (bit-exact round trip).
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import math
+import os
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+import tomli_w
+
+from .. import lie
+from ..arm import MODULE_KINDS, Arm, Module
+
+_ORTHO_TOL = 1e-6
+_DEFAULT_MODEL = "cdra.toml"
+
+
+class ModelFileError(ValueError):
+    """A model file is malformed; the message names the file and the entry."""
+
+
+def _err(source: str, where: str, what: str) -> ModelFileError:
+    return ModelFileError(f"{source}: {where}: {what}")
+
+
+def _vector(source: str, where: str, value: Any, n: int) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise _err(source, where, f"expected a list of {n} numbers, got {value!r}") from None
+    if a.shape != (n,):
+        raise _err(source, where, f"expected a list of {n} numbers, got {value!r}")
+    if not np.all(np.isfinite(a)):
+        raise _err(source, where, f"contains a non-finite number: {value!r}")
+    return a
+
+
+def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
+    where = f"frames[{i}] ({spec.get('name', '?')!s})"
+    has_matrix = "matrix" in spec
+    has_pose = "xyz" in spec or "rotvec" in spec
+    if has_matrix and has_pose:
+        raise _err(source, where, "give either 'matrix' or 'xyz' + 'rotvec', not both")
+    if has_matrix:
+        try:
+            M = np.asarray(spec["matrix"], dtype=float)
+        except (TypeError, ValueError):
+            raise _err(source, where, "'matrix' must be 4 rows of 4 numbers") from None
+        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+            raise _err(source, where, f"'matrix' must be 4 rows of 4 finite numbers, got {M.shape}")
+        if not np.allclose(M[3], [0, 0, 0, 1], atol=0):
+            raise _err(source, where, f"last row of 'matrix' must be [0, 0, 0, 1], got {M[3]}")
+        R = M[:3, :3]
+        dev = np.abs(R.T @ R - np.eye(3)).max()
+        if dev > _ORTHO_TOL:
+            raise _err(
+                source, where, f"rotation block is not orthonormal (|R^T R - I| = {dev:.2e})"
+            )
+        if np.linalg.det(R) < 0:
+            raise _err(source, where, "rotation block is a reflection (det < 0, left-handed)")
+        return M
+    if "xyz" not in spec or "rotvec" not in spec:
+        raise _err(source, where, "needs 'xyz' (mm) and 'rotvec' (rad), or 'matrix' (4x4)")
+    xyz = _vector(source, f"{where}.xyz", spec["xyz"], 3)
+    rv = _vector(source, f"{where}.rotvec", spec["rotvec"], 3)
+    return np.asarray(lie.from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
+
+
+def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
+    name = spec.get("name")
+    where = f"modules[{i}] ({name!s})"
+    if not isinstance(name, str) or not name:
+        raise _err(source, f"modules[{i}]", "needs a 'name' (string)")
+    kind = spec.get("kind")
+    if kind not in MODULE_KINDS:
+        raise _err(source, where, f"'kind' must be one of {MODULE_KINDS}, got {kind!r}")
+    dof = 3 if kind == "spherical" else 1
+    known = {
+        "name",
+        "kind",
+        "axis",
+        "limits",
+        "cables",
+        "mass",
+        "com",
+        "pretension",
+        "stiffness",
+    }
+    unknown = sorted(set(spec) - known)
+    if unknown:
+        raise _err(source, where, f"unknown keys {unknown}; known: {sorted(known)}")
+    if kind == "spherical":
+        if "axis" in spec:
+            raise _err(source, where, "a spherical module takes no 'axis'")
+        axis = np.zeros(3)
+        default_limits = [[-1.0, 1.0]] * 3
+    else:
+        if "axis" not in spec:
+            raise _err(source, where, f"a {kind} module needs an 'axis'")
+        axis = _vector(source, f"{where}.axis", spec["axis"], 3)
+        n = np.linalg.norm(axis)
+        if n < 1e-12:
+            raise _err(source, where, "'axis' must be non-zero")
+        axis = axis / n
+        default_limits = [[-math.pi, math.pi]] if kind == "revolute" else [[-100.0, 100.0]]
+    limits = spec.get("limits", default_limits)
+    try:
+        lim = np.asarray(limits, dtype=float)
+    except (TypeError, ValueError):
+        raise _err(source, f"{where}.limits", f"expected {dof} pairs [low, high]") from None
+    if lim.shape != (dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
+        raise _err(
+            source, f"{where}.limits", f"expected {dof} pairs [low, high] with low < high, got {limits!r}"
+        )
+    kwargs: dict[str, Any] = {}
+    if "cables" in spec:
+        cables = spec["cables"]
+        if not isinstance(cables, list) or not cables:
+            raise _err(source, f"{where}.cables", "expected a non-empty list of {base, platform}")
+        base, plat = [], []
+        for j, c in enumerate(cables):
+            if not isinstance(c, Mapping) or set(c) != {"base", "platform"}:
+                raise _err(
+                    source, f"{where}.cables[{j}]", "expected { base = [x, y, z], platform = [x, y, z] }"
+                )
+            base.append(_vector(source, f"{where}.cables[{j}].base", c["base"], 3))
+            plat.append(_vector(source, f"{where}.cables[{j}].platform", c["platform"], 3))
+        kwargs["cable_base"] = jnp.asarray(np.stack(base))
+        kwargs["cable_platform"] = jnp.asarray(np.stack(plat))
+    for key in ("mass", "pretension", "stiffness"):
+        if key in spec:
+            v = spec[key]
+            if not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+                raise _err(source, f"{where}.{key}", f"expected a non-negative number, got {v!r}")
+            kwargs[key] = float(v)
+    if "com" in spec:
+        kwargs["com"] = jnp.asarray(_vector(source, f"{where}.com", spec["com"], 3))
+    return Module(
+        name=name,
+        kind=kind,
+        axis=jnp.asarray(axis),
+        limits=tuple((float(a), float(b)) for a, b in lim),
+        **kwargs,
+    )
+
+
+def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
+    """Build an :class:`Arm` from the parsed TOML mapping (``source`` names it in errors)."""
+    if not isinstance(spec.get("name"), str):
+        raise _err(source, "top level", "needs a 'name' (string)")
+    unknown = sorted(set(spec) - {"name", "description", "gravity", "frames", "modules"})
+    if unknown:
+        raise _err(source, "top level", f"unknown keys {unknown}")
+    frames = spec.get("frames")
+    modules = spec.get("modules")
+    if not isinstance(modules, list) or not modules:
+        raise _err(source, "top level", "needs at least one [[modules]] entry")
+    if not isinstance(frames, list):
+        raise _err(source, "top level", "needs [[frames]] entries")
+    if len(frames) != len(modules) + 1:
+        raise _err(
+            source,
+            "top level",
+            f"{len(modules)} modules need {len(modules) + 1} [[frames]] (one before, between "
+            f"and after the modules), got {len(frames)}",
+        )
+    names = []
+    for i, f in enumerate(frames):
+        if not isinstance(f, Mapping) or not isinstance(f.get("name"), str) or not f["name"]:
+            raise _err(source, f"frames[{i}]", "needs a 'name' (string)")
+        extra = sorted(set(f) - {"name", "xyz", "rotvec", "matrix"})
+        if extra:
+            raise _err(source, f"frames[{i}] ({f['name']})", f"unknown keys {extra}")
+        names.append(f["name"])
+    mats = np.stack([_frame_matrix(source, i, f) for i, f in enumerate(frames)])
+    mods = tuple(_module(source, i, m) for i, m in enumerate(modules))
+    all_names = names + [m.name for m in mods]
+    dup = sorted({n for n in all_names if all_names.count(n) > 1})
+    if dup:
+        raise _err(source, "top level", f"frame and module names must be unique, repeated: {dup}")
+    gravity = _vector(source, "gravity", spec.get("gravity", [0.0, 0.0, -9.81]), 3)
+    return Arm(
+        frames=jnp.asarray(mats),
+        modules=mods,
+        frame_names=tuple(names),
+        name=spec["name"],
+        description=str(spec.get("description", "")),
+        gravity=jnp.asarray(gravity),
+    )
+
+
+def load_model(path: str | os.PathLike) -> Arm:
+    """Read a model TOML file. Errors name the file and the offending entry."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ModelFileError(f"{path}: cannot read model file: {e.strerror}") from None
+    return loads_model(text, source=str(path))
+
+
+def loads_model(text: str, source: str = "<model>") -> Arm:
+    """Parse model TOML text."""
+    try:
+        spec = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ModelFileError(f"{source}: not valid TOML: {e}") from None
+    return arm_from_dict(spec, source)
+
+
+def default_arm() -> Arm:
+    """The paper's 7-DOF CDRA, from the model file embedded in the package."""
+    ref = importlib.resources.files("cdra_jax.data").joinpath(_DEFAULT_MODEL)
+    return loads_model(ref.read_text(encoding="utf-8"), source=f"<cdra_jax>/data/{_DEFAULT_MODEL}")
+
+
+def default_model_text() -> str:
+    """Text of the embedded default model file."""
+    ref = importlib.resources.files("cdra_jax.data").joinpath(_DEFAULT_MODEL)
+    return ref.read_text(encoding="utf-8")
+
+
+def _floats(a: Any) -> Any:
+    return np.asarray(a, dtype=float).tolist()
+
+
+def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
+    """Mapping for :func:`dumps_model` (frames as ``matrix`` when ``exact``)."""
+    frames = []
+    for name, M in zip(arm.frame_names, np.asarray(arm.frames), strict=True):
+        if exact:
+            frames.append({"name": name, "matrix": _floats(M)})
+        else:
+            xyz, rv = lie.to_xyz_rotvec(jnp.asarray(M))
+            frames.append({"name": name, "xyz": _floats(xyz), "rotvec": _floats(rv)})
+    modules = []
+    for m in arm.modules:
+        d: dict[str, Any] = {"name": m.name, "kind": m.kind}
+        if m.kind != "spherical":
+            d["axis"] = _floats(m.axis)
+        d["limits"] = [list(lim) for lim in m.limits]
+        if m.cable_base is not None and m.cable_platform is not None:
+            d["cables"] = [
+                {"base": _floats(b), "platform": _floats(p)}
+                for b, p in zip(np.asarray(m.cable_base), np.asarray(m.cable_platform), strict=True)
+            ]
+        if m.mass is not None:
+            d["mass"] = float(m.mass)
+        if m.com is not None:
+            d["com"] = _floats(m.com)
+        if m.pretension is not None:
+            d["pretension"] = float(m.pretension)
+        if m.stiffness is not None:
+            d["stiffness"] = float(m.stiffness)
+        modules.append(d)
+    out: dict[str, Any] = {"name": arm.name}
+    if arm.description:
+        out["description"] = arm.description
+    out["gravity"] = _floats(arm.gravity)
+    out["frames"] = frames
+    out["modules"] = modules
+    return out
+
+
+def dumps_model(arm: Arm, *, exact: bool = False) -> str:
+    """Model TOML text of ``arm``."""
+    return tomli_w.dumps(arm_to_dict(arm, exact=exact))
+
+
+def save_model(arm: Arm, path: str | os.PathLike, *, exact: bool = False) -> None:
+    """Write ``arm`` as a model TOML file (see :func:`dumps_model`)."""
+    Path(path).write_text(dumps_model(arm, exact=exact), encoding="utf-8")

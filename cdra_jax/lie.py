@@ -1,0 +1,281 @@
+"""SO(3) and SE(3) maps of the paper's appendix (Eqs. 22-27), batched and differentiable.
+
+Conventions (used everywhere in :mod:`cdra_jax`):
+
+* A pose is a homogeneous matrix ``T = [[R, p], [0, 1]]`` (Eq. 22), shape ``(..., 4, 4)``;
+  translations in millimetres.
+* A twist is ordered as in the paper, **translation first**: ``xi = (v, w)``, shape ``(..., 6)``
+  (Eq. 23); ``w`` in radians.
+* ``hat(xi) = [[hat(w), v], [0, 0]]`` and ``exp(hat(xi)) = [[exp(hat(w)), A v], [0, 1]]`` (Eq. 26).
+* The adjoint is ``Ad_T = [[R, hat(p) R], [0, R]]`` (Eq. 25), so that
+  ``T exp(hat(xi)) T^-1 = exp(hat(Ad_T xi))`` (Eq. 6).
+
+Every function broadcasts over leading batch dimensions, jits, vmaps and differentiates.
+Near zero rotation the closed forms are replaced by Taylor series behind the "double where"
+shim, so that values *and* gradients stay finite. The SO(3) logarithm goes through a
+quaternion (Shepperd's method), which stays accurate near a rotation of pi where the paper's
+formula ``phi / (2 sin phi) (R - R^T)`` (Eq. 27) loses every digit; the SE(3) logarithm uses
+``A^{-1} = I - hat(w)/2 + c hat(w)^2`` with ``c = (1 - phi sin(phi) / (2 (1 - cos(phi)))) / phi^2``,
+which is finite at pi, unlike the ``sin`` in the denominator of Eq. 27.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+# Below this squared angle (rad^2) the closed forms switch to their Taylor series. At 1e-2 the
+# series truncation error (first omitted term ~ phi^10 / 10!) and the cancellation error of the
+# closed forms (eps / phi^2) are both below 1e-13 relative.
+_SMALL_ANGLE_SQ = 1e-2
+
+
+def hat3(w: ArrayLike) -> Array:
+    """Skew-symmetric matrix of a 3-vector: ``(..., 3) -> (..., 3, 3)``, ``hat(w) x = w x x``."""
+    w = jnp.asarray(w)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack(
+        [
+            jnp.stack([o, -z, y], axis=-1),
+            jnp.stack([z, o, -x], axis=-1),
+            jnp.stack([-y, x, o], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def vee3(W: ArrayLike) -> Array:
+    """Inverse of :func:`hat3` (uses the skew part): ``(..., 3, 3) -> (..., 3)``."""
+    W = jnp.asarray(W)
+    return 0.5 * jnp.stack(
+        [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def hat(xi: ArrayLike) -> Array:
+    """se(3) matrix of a twist ``(v, w)`` (Eq. 23): ``(..., 6) -> (..., 4, 4)``."""
+    xi = jnp.asarray(xi)
+    top = jnp.concatenate([hat3(xi[..., 3:]), xi[..., :3, None]], axis=-1)
+    bottom = jnp.zeros(xi.shape[:-1] + (1, 4), dtype=top.dtype)
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+def vee(X: ArrayLike) -> Array:
+    """Twist ``(v, w)`` of an se(3) matrix: ``(..., 4, 4) -> (..., 6)``."""
+    X = jnp.asarray(X)
+    return jnp.concatenate([X[..., :3, 3], vee3(X[..., :3, :3])], axis=-1)
+
+
+def _angle_coefficients(theta_sq: Array) -> tuple[Array, Array, Array]:
+    """``sin(t)/t``, ``(1-cos t)/t^2`` and ``(t - sin t)/t^3`` of ``t = sqrt(theta_sq)``.
+
+    Finite with finite gradients at ``theta_sq = 0`` (double-where shim).
+    """
+    small = theta_sq < _SMALL_ANGLE_SQ
+    safe_sq = jnp.where(small, jnp.ones_like(theta_sq), theta_sq)
+    t = jnp.sqrt(safe_sq)
+    s, c = jnp.sin(t), jnp.cos(t)
+    x = theta_sq
+    a_taylor = 1.0 - x / 6.0 * (1.0 - x / 20.0 * (1.0 - x / 42.0 * (1.0 - x / 72.0)))
+    b_taylor = 0.5 * (1.0 - x / 12.0 * (1.0 - x / 30.0 * (1.0 - x / 56.0 * (1.0 - x / 90.0))))
+    c_taylor = (1.0 - x / 20.0 * (1.0 - x / 42.0 * (1.0 - x / 72.0 * (1.0 - x / 110.0)))) / 6.0
+    a = jnp.where(small, a_taylor, s / t)
+    b = jnp.where(small, b_taylor, (1.0 - c) / safe_sq)
+    cc = jnp.where(small, c_taylor, (t - s) / (safe_sq * t))
+    return a, b, cc
+
+
+def so3_exp(w: ArrayLike) -> Array:
+    """Rotation matrix of a rotation vector (Rodrigues, Eq. 26): ``(..., 3) -> (..., 3, 3)``."""
+    w = jnp.asarray(w)
+    a, b, _ = _angle_coefficients(jnp.sum(w * w, axis=-1))
+    W = hat3(w)
+    W2 = W @ W
+    eye = jnp.eye(3, dtype=W.dtype)
+    return eye + a[..., None, None] * W + b[..., None, None] * W2
+
+
+def so3_left_jacobian(w: ArrayLike) -> Array:
+    """The matrix ``A`` of Eq. 26 (left Jacobian of SO(3)): ``(..., 3) -> (..., 3, 3)``."""
+    w = jnp.asarray(w)
+    _, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
+    W = hat3(w)
+    eye = jnp.eye(3, dtype=W.dtype)
+    return eye + b[..., None, None] * W + c[..., None, None] * (W @ W)
+
+
+def rotation_to_quaternion(R: ArrayLike) -> Array:
+    """Unit quaternion ``(w, x, y, z)`` of a rotation matrix (Shepperd / Day): ``(..., 4)``.
+
+    The branch with the largest pivot is selected before the square root, so every rotation,
+    including those near pi, is converted to full precision. The sign is not normalised.
+    """
+    m = jnp.asarray(R)
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    t0 = 1 + m00 - m11 - m22
+    q0 = jnp.stack([m21 - m12, t0, m10 + m01, m02 + m20], axis=-1)
+    t1 = 1 - m00 + m11 - m22
+    q1 = jnp.stack([m02 - m20, m10 + m01, t1, m21 + m12], axis=-1)
+    t2 = 1 - m00 - m11 + m22
+    q2 = jnp.stack([m10 - m01, m02 + m20, m21 + m12, t2], axis=-1)
+    t3 = 1 + m00 + m11 + m22
+    q3 = jnp.stack([t3, m21 - m12, m02 - m20, m10 - m01], axis=-1)
+    c0 = m22 < 0
+    c1 = m00 > m11
+    c2 = m00 < -m11
+    t = jnp.where(c0, jnp.where(c1, t0, t1), jnp.where(c2, t2, t3))
+    q = jnp.where(
+        c0[..., None], jnp.where(c1[..., None], q0, q1), jnp.where(c2[..., None], q2, q3)
+    )
+    return q * (0.5 / jnp.sqrt(t))[..., None]
+
+
+def quaternion_to_rotation(q: ArrayLike) -> Array:
+    """Rotation matrix of a unit quaternion ``(w, x, y, z)``: ``(..., 4) -> (..., 3, 3)``."""
+    q = jnp.asarray(q)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack(
+        [
+            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def quaternion_log(q: ArrayLike) -> Array:
+    """Rotation vector of a unit quaternion ``(w, x, y, z)``: ``(..., 4) -> (..., 3)``.
+
+    The result has norm in ``[0, pi]``; the double cover is resolved by flipping to ``w >= 0``.
+    """
+    q = jnp.asarray(q)
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    n_sq = jnp.sum(v * v, axis=-1)
+    small = n_sq < 1e-12
+    safe_n = jnp.sqrt(jnp.where(small, jnp.ones_like(n_sq), n_sq))
+    safe_w = jnp.where(small, w, jnp.ones_like(w))
+    exact = 2.0 * jnp.arctan2(safe_n, w) / safe_n
+    # 2 atan(n / w) / n = (2 / w) (1 - n^2 / (3 w^2) + ...), with w ~ 1 on this branch.
+    taylor = 2.0 / safe_w * (1.0 - n_sq / (3.0 * safe_w * safe_w))
+    return jnp.where(small, taylor, exact)[..., None] * v
+
+
+def so3_log(R: ArrayLike) -> Array:
+    """Rotation vector of a rotation matrix, norm in ``[0, pi]``: ``(..., 3, 3) -> (..., 3)``.
+
+    Accurate for every rotation, near zero and near pi (see the module docstring).
+    """
+    return quaternion_log(rotation_to_quaternion(R))
+
+
+def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
+    """The matrix ``A*`` of Eq. 27, ``A^{-1}``: ``(..., 3) -> (..., 3, 3)``; finite up to pi."""
+    w = jnp.asarray(w)
+    x = jnp.sum(w * w, axis=-1)
+    small = x < _SMALL_ANGLE_SQ
+    safe_x = jnp.where(small, jnp.ones_like(x), x)
+    t = jnp.sqrt(safe_x)
+    # 1 - t sin t / (2 (1 - cos t)); 1 - cos t = 2 sin^2(t/2) avoids cancellation.
+    exact = (1.0 - 0.5 * t * jnp.sin(t) / (2.0 * jnp.sin(0.5 * t) ** 2)) / safe_x
+    taylor = 1.0 / 12.0 + x / 720.0 + x * x / 30240.0 + x * x * x / 1209600.0
+    c = jnp.where(small, taylor, exact)
+    W = hat3(w)
+    eye = jnp.eye(3, dtype=W.dtype)
+    return eye - 0.5 * W + c[..., None, None] * (W @ W)
+
+
+def make_pose(R: ArrayLike, p: ArrayLike) -> Array:
+    """Homogeneous matrix from ``R (..., 3, 3)`` and ``p (..., 3)`` (Eq. 22): ``(..., 4, 4)``."""
+    R = jnp.asarray(R)
+    p = jnp.asarray(p, dtype=R.dtype)
+    R, p = jnp.broadcast_arrays(R, p[..., None, :])
+    p = p[..., 0, :]
+    top = jnp.concatenate([R, p[..., :, None]], axis=-1)
+    bottom = jnp.broadcast_to(
+        jnp.array([0.0, 0.0, 0.0, 1.0], dtype=R.dtype), R.shape[:-2] + (1, 4)
+    )
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+def rotation(T: ArrayLike) -> Array:
+    """Rotation block ``R`` of a pose: ``(..., 4, 4) -> (..., 3, 3)``."""
+    return jnp.asarray(T)[..., :3, :3]
+
+
+def translation(T: ArrayLike) -> Array:
+    """Translation ``p`` of a pose (mm): ``(..., 4, 4) -> (..., 3)``."""
+    return jnp.asarray(T)[..., :3, 3]
+
+
+def se3_exp(xi: ArrayLike) -> Array:
+    """Pose of a twist ``(v, w)`` (Eq. 26): ``(..., 6) -> (..., 4, 4)``."""
+    xi = jnp.asarray(xi)
+    v, w = xi[..., :3], xi[..., 3:]
+    a, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
+    W = hat3(w)
+    W2 = W @ W
+    eye = jnp.eye(3, dtype=W.dtype)
+    R = eye + a[..., None, None] * W + b[..., None, None] * W2
+    A = eye + b[..., None, None] * W + c[..., None, None] * W2
+    return make_pose(R, jnp.einsum("...ij,...j->...i", A, v))
+
+
+def se3_log(T: ArrayLike) -> Array:
+    """Twist ``(v, w)`` of a pose (Eq. 27, made robust near pi): ``(..., 4, 4) -> (..., 6)``."""
+    T = jnp.asarray(T)
+    w = so3_log(T[..., :3, :3])
+    v = jnp.einsum("...ij,...j->...i", so3_left_jacobian_inverse(w), T[..., :3, 3])
+    return jnp.concatenate([v, w], axis=-1)
+
+
+def inverse(T: ArrayLike) -> Array:
+    """Inverse pose ``[[R^T, -R^T p], [0, 1]]``: ``(..., 4, 4) -> (..., 4, 4)``."""
+    T = jnp.asarray(T)
+    Rt = jnp.swapaxes(T[..., :3, :3], -1, -2)
+    return make_pose(Rt, -jnp.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def compose(*poses: ArrayLike) -> Array:
+    """Product of poses, left to right (broadcasting): ``T_ab T_bc -> T_ac``."""
+    if not poses:
+        raise ValueError("compose needs at least one pose")
+    out = jnp.asarray(poses[0])
+    for T in poses[1:]:
+        out = out @ jnp.asarray(T)
+    return out
+
+
+def adjoint(T: ArrayLike) -> Array:
+    """Adjoint ``[[R, hat(p) R], [0, R]]`` of a pose (Eq. 25): ``(..., 4, 4) -> (..., 6, 6)``."""
+    T = jnp.asarray(T)
+    R, p = T[..., :3, :3], T[..., :3, 3]
+    top = jnp.concatenate([R, hat3(p) @ R], axis=-1)
+    bottom = jnp.concatenate([jnp.zeros_like(R), R], axis=-1)
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+def from_xyz_rotvec(xyz: ArrayLike, rotvec: ArrayLike) -> Array:
+    """Pose from a translation (mm) and a rotation vector (rad): ``(..., 3), (..., 3) -> (..., 4, 4)``.
+
+    Note this is *not* ``se3_exp((xyz, rotvec))``: ``xyz`` is the translation itself.
+    """
+    return make_pose(so3_exp(rotvec), xyz)
+
+
+def to_xyz_rotvec(T: ArrayLike) -> tuple[Array, Array]:
+    """Inverse of :func:`from_xyz_rotvec`: translation (mm) and rotation vector (rad)."""
+    return translation(T), so3_log(rotation(T))
+
+
+def rotation_angle(R: ArrayLike) -> Array:
+    """Angle of a rotation in ``[0, pi]`` (rad), accurate at both ends: ``(..., 3, 3) -> (...)``."""
+    q = rotation_to_quaternion(R)
+    n = jnp.linalg.norm(q[..., 1:], axis=-1)
+    return 2.0 * jnp.arctan2(n, jnp.abs(q[..., 0]))
