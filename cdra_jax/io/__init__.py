@@ -1,5 +1,14 @@
 """File contracts: model TOML, measurement CSV, result JSON (see ``shared/design.md``)."""
 
+from .files import OutputExistsError as OutputExistsError
+from .files import write_text_atomic as write_text_atomic
+from .measurements import MeasurementFileError as MeasurementFileError
+from .measurements import Measurements as Measurements
+from .measurements import check_pose_count as check_pose_count
+from .measurements import dumps_measurements as dumps_measurements
+from .measurements import load_measurements as load_measurements
+from .measurements import loads_measurements as loads_measurements
+from .measurements import save_measurements as save_measurements
 from .model import ModelFileError as ModelFileError
 from .model import arm_from_dict as arm_from_dict
 from .model import arm_to_dict as arm_to_dict
