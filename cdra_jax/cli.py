@@ -86,10 +86,10 @@ def _check_output(path: str | None, force: bool, flag: str) -> None:
     if path is None:
         return
     p = Path(path)
+    if p.is_dir():
+        raise IsADirectoryError(f"{flag} {p}: is a folder, expected a file name")
     if p.exists() and not force:
         raise FileExistsError(f"{p}: file exists; refusing to overwrite it (pass --force)")
-    if p.exists() and p.is_dir():
-        raise IsADirectoryError(f"{flag} {p}: is a folder, expected a file name")
     if not (p.parent if str(p.parent) else Path(".")).is_dir():
         raise FileNotFoundError(f"{flag} {p}: folder {p.parent} does not exist")
 

@@ -217,3 +217,20 @@ def _set(d, matrix, *keys):
         node = node[k]
     node["matrix"] = matrix
     return d
+
+
+def test_json_text_puts_number_lists_on_one_line_and_reads_back_exactly():
+    from cdra_jax.io.files import json_text
+
+    doc = {
+        "m": np.eye(4).tolist(),
+        "many": [[0.1 * i, None] for i in range(12)],  # >10 leaves: token1 vs token10
+        "names": ["a", "b"],
+        "x": 1 / 3,
+    }
+    text = json_text(doc)
+    assert json.loads(text) == doc
+    assert "\n    [1.0, 0.0, 0.0, 0.0],\n" in text
+    assert '"names": [\n' in text  # only lists of numbers are compacted
+    with pytest.raises(ValueError):
+        json_text({"bad": [float("nan")]})

@@ -10,9 +10,12 @@ where the file system supports hard links (``os.link`` fails when the name exist
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
+import uuid
 from pathlib import Path
+from typing import Any
 
 
 class OutputExistsError(FileExistsError):
@@ -79,3 +82,32 @@ def _move_no_clobber(tmp: str, path: Path) -> None:
         os.replace(tmp, path)
         return
     os.unlink(tmp)
+
+
+def json_text(obj: Any) -> str:
+    """JSON text with 2-space indentation, each flat list of numbers on one line.
+
+    Floats are written as ``repr`` (exact round trip); ``NaN``/``inf`` are refused (JSON has
+    none; callers write ``null``). A 4x4 matrix reads as four lines of four numbers.
+    """
+    token = f"@@{uuid.uuid4().hex}@@"
+    leaves: list[str] = []
+
+    def mark(o: Any) -> Any:
+        if isinstance(o, dict):
+            return {k: mark(v) for k, v in o.items()}
+        if isinstance(o, list | tuple):
+            if o and all(_is_number(v) for v in o):
+                leaves.append(json.dumps(list(o), allow_nan=False))
+                return f"{token}{len(leaves) - 1}"
+            return [mark(v) for v in o]
+        return o
+
+    text = json.dumps(mark(obj), indent=2, allow_nan=False)
+    for i in reversed(range(len(leaves))):  # reversed: token1 must not eat token10
+        text = text.replace(f'"{token}{i}"', leaves[i])
+    return text + "\n"
+
+
+def _is_number(v: Any) -> bool:
+    return v is None or (isinstance(v, int | float) and not isinstance(v, bool))

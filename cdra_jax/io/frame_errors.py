@@ -36,7 +36,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from ..arm import TWIST_COMPONENTS, Arm
-from .files import write_text_atomic
+from .files import json_text, write_text_atomic
 
 
 class FrameErrorFileError(ValueError):
@@ -137,4 +137,4 @@ def save_frame_errors(
     doc: dict[str, Any] = {"format": "cdra_jax.frame_errors", "format_version": 1}
     doc.update(metadata or {})
     doc["frames"] = frame_errors_to_dict(arm, errors)
-    return write_text_atomic(path, json.dumps(doc, indent=2) + "\n", force=force)
+    return write_text_atomic(path, json_text(doc), force=force)

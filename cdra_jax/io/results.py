@@ -54,7 +54,7 @@ from .. import lie
 from ..arm import TWIST_COMPONENTS, Arm, tool_pose
 from ..calibration.model import NoiseModel, pose_errors
 from ..calibration.solution import CalibrationSolution, result_messages, result_names
-from .files import write_text_atomic
+from .files import json_text, write_text_atomic
 
 RESULT_FORMAT = "cdra_jax.calibration_result"
 RESULT_FORMAT_VERSION = 1
@@ -216,7 +216,7 @@ def result_to_dict(
 
 def dumps_result(result: Mapping[str, Any]) -> str:
     """JSON text of a result mapping (2-space indent; floats exact; no NaN)."""
-    return json.dumps(_finite(result), indent=2, allow_nan=False) + "\n"
+    return json_text(_finite(result))
 
 
 def save_result(result: Mapping[str, Any], path: str | os.PathLike, *, force: bool = False) -> Path:
