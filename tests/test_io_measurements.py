@@ -289,6 +289,10 @@ BAD_CASES = {
         lambda t: _replace(t, 5, ",", ";"),
         ["line 5", "expected 14 fields", "got 13"],
     ),
+    "semicolon separated": (
+        lambda t: t.replace(",", ";"),
+        ["line 3", "separated by commas", "';'"],
+    ),
     "comment after header": (
         lambda t: t + "# trailing remark\n",
         ["line 9", "comment line after the header"],
@@ -379,3 +383,14 @@ def test_from_arrays_rejects_bad_arrays(cdra):
         Measurements.from_arrays(cdra, q, bad)
     with pytest.raises(ValueError, match="unknown auxiliary column 'humidity'"):
         Measurements.from_arrays(cdra, q, T, aux={"humidity": np.zeros(4)})
+
+
+def test_spreadsheet_quirks_bom_and_crlf_are_accepted(cdra, good_text, tmp_path):
+    path = tmp_path / "excel.csv"
+    path.write_bytes(b"\xef\xbb\xbf" + good_text.replace("\n", "\r\n").encode())
+    meas = load_measurements(path, cdra)
+    assert meas.comments == ("made by hand", "second comment") and meas.lines[0] == 4
+    assert dumps_measurements(meas) == good_text
+    bad = _cell(good_text, 6, "elbow.q", "abc").replace("\n", "\r\n")
+    with pytest.raises(MeasurementFileError, match="line 6, column 'elbow.q'"):
+        loads_measurements("\ufeff" + bad, cdra)

@@ -383,7 +383,10 @@ def loads_measurements(
     Raises:
         MeasurementFileError: malformed content (message names the file, line and column).
     """
-    lines = text.splitlines(keepends=True)
+    if text.startswith("\ufeff"):
+        text = text[1:]  # a UTF-8 byte-order mark, as spreadsheet programs write
+    # Split lines the way the csv module does (\n, \r\n or \r), so line numbers agree.
+    lines = io.StringIO(text, newline="").readlines()
     comments: list[str] = []
     h = 0
     while h < len(lines) and (not lines[h].strip() or lines[h].lstrip().startswith("#")):
@@ -538,6 +541,12 @@ def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured
     def err(what: str, column: str | None = None) -> MeasurementFileError:
         return ctx.error(what, column=column)
 
+    if len(header) == 1 and ";" in header[0]:
+        raise MeasurementFileError(
+            source,
+            "columns must be separated by commas; this header row uses ';'",
+            line=ctx.header_line,
+        )
     if POSE_COLUMN not in header:
         looks_like_data = any(_is_number(c) for c in header)
         if looks_like_data:
@@ -662,7 +671,7 @@ def load_measurements(
     """Read a measurement CSV file (see :func:`loads_measurements`)."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except OSError as e:
         raise MeasurementFileError(
             str(path), f"cannot read measurement file: {e.strerror}"
