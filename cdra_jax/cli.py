@@ -192,6 +192,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     arm, model_label = _load_arm(args.model)
     meas = load_measurements(args.data, arm)
     check_pose_count(meas)
+    assert meas.measured is not None  # the reader demands the measured columns by default
     solve = calibrate_paper if args.solver == "paper" else calibrate_lm
     kwargs: dict[str, Any] = {"throw": False}
     if args.max_iterations is not None:

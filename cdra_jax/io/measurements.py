@@ -237,6 +237,7 @@ class Measurements:
             T = np.asarray(measured, dtype=float)
             _check_poses(T, m)
             rv, quat = (np.asarray(a, dtype=float) for a in _rotvec_quaternion(T))
+            names: tuple[str, ...]
             if orientation == "rotvec":
                 rot, names = rv, ROTVEC_COLUMNS
             elif orientation == "quaternion":
@@ -581,11 +582,11 @@ def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured
                 )
             measured.append(c)
         elif c.startswith("approach."):
-            mod = c[len("approach.") :]
-            if mod not in arm.module_names:
+            target = c[len("approach.") :]
+            if target not in arm.module_names:
                 raise err(
-                    f"unknown module {mod!r} in an approach column; modules of arm {arm.name!r}: "
-                    f"{', '.join(arm.module_names)}",
+                    f"unknown module {target!r} in an approach column; modules of arm "
+                    f"{arm.name!r}: {', '.join(arm.module_names)}",
                     c,
                 )
             aux.append(c)
