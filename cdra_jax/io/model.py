@@ -33,6 +33,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import tomli_w
@@ -42,6 +43,9 @@ from ..arm import MODULE_KINDS, Arm, Module
 
 _ORTHO_TOL = 1e-6
 _DEFAULT_MODEL = "cdra.toml"
+# One compiled call instead of dozens of small op-by-op dispatches: every CLI run loads a model.
+_from_xyz_rotvec = jax.jit(lie.from_xyz_rotvec)
+_to_xyz_rotvec = jax.jit(lie.to_xyz_rotvec)
 
 
 class ModelFileError(ValueError):
@@ -92,7 +96,7 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
         raise _err(source, where, "needs 'xyz' (mm) and 'rotvec' (rad), or 'matrix' (4x4)")
     xyz = _vector(source, f"{where}.xyz", spec["xyz"], 3)
     rv = _vector(source, f"{where}.rotvec", spec["rotvec"], 3)
-    return np.asarray(lie.from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
+    return np.asarray(_from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
 
 
 def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
@@ -260,7 +264,7 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
         if exact:
             frames.append({"name": name, "matrix": _floats(M)})
         else:
-            xyz, rv = lie.to_xyz_rotvec(jnp.asarray(M))
+            xyz, rv = _to_xyz_rotvec(jnp.asarray(M))
             frames.append({"name": name, "xyz": _floats(xyz), "rotvec": _floats(rv)})
     modules = []
     for m in arm.modules:
