@@ -65,9 +65,7 @@ def add_measurement_noise(key: Array, poses: ArrayLike, noise: NoiseModel | None
     return lie.make_pose(R, lie.translation(poses) + dp)
 
 
-def measure(
-    key: Array, arm_actual: Arm, q: ArrayLike, noise: NoiseModel | None = None
-) -> Array:
+def measure(key: Array, arm_actual: Arm, q: ArrayLike, noise: NoiseModel | None = None) -> Array:
     """Simulated measured tool poses ``(m, 4, 4)`` of the actual arm at states ``q (m, dof)``."""
     return add_measurement_noise(key, tool_pose(arm_actual, q), noise)
 

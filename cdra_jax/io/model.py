@@ -143,7 +143,9 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         raise _err(source, f"{where}.limits", f"expected {dof} pairs [low, high]") from None
     if lim.shape != (dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
         raise _err(
-            source, f"{where}.limits", f"expected {dof} pairs [low, high] with low < high, got {limits!r}"
+            source,
+            f"{where}.limits",
+            f"expected {dof} pairs [low, high] with low < high, got {limits!r}",
         )
     kwargs: dict[str, Any] = {}
     if "cables" in spec:
@@ -154,7 +156,9 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         for j, c in enumerate(cables):
             if not isinstance(c, Mapping) or set(c) != {"base", "platform"}:
                 raise _err(
-                    source, f"{where}.cables[{j}]", "expected { base = [x, y, z], platform = [x, y, z] }"
+                    source,
+                    f"{where}.cables[{j}]",
+                    "expected { base = [x, y, z], platform = [x, y, z] }",
                 )
             base.append(_vector(source, f"{where}.cables[{j}].base", c["base"], 3))
             plat.append(_vector(source, f"{where}.cables[{j}].platform", c["platform"], 3))
