@@ -26,7 +26,6 @@ from .calibration import NoiseModel as NoiseModel
 from .calibration import calibrate_lm as calibrate_lm
 from .calibration import calibrate_paper as calibrate_paper
 from .calibration import deviation_metrics as deviation_metrics
-from .identifiability import analyze as analyze_identifiability
 from .io import default_arm as default_arm
 from .io import load_model as load_model
 from .io import save_model as save_model

@@ -258,7 +258,7 @@ def adjoint(T: ArrayLike) -> Array:
 
 
 def from_xyz_rotvec(xyz: ArrayLike, rotvec: ArrayLike) -> Array:
-    """Pose from a translation (mm) and a rotation vector (rad): ``(..., 3), (..., 3) -> (..., 4, 4)``.
+    """Pose from a translation (mm) and a rotation vector (rad): ``(..., 3) x2 -> (..., 4, 4)``.
 
     Note this is *not* ``se3_exp((xyz, rotvec))``: ``xyz`` is the translation itself.
     """
