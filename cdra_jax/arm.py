@@ -46,6 +46,9 @@ class Module(eqx.Module):
         limits: per state entry ``(low, high)``, in rad or mm.
         cable_base: cable attachment points on the module base, ``(n, 3)`` mm, or ``None``.
         cable_platform: matching points on the moving platform, ``(n, 3)`` mm, or ``None``.
+        cable_offset: per-cable length offset ``(n,)`` mm, or ``None`` (zero): a measured cable
+            length is the straight-line attachment distance plus this offset (encoder zero,
+            routing; see :mod:`cdra_jax.modules.cables`).
         mass: mass (kg) of the body the module moves, or ``None``.
         com: its centre of mass ``(3,)`` mm in the platform frame, or ``None``.
         pretension: cable pretension (N), or ``None``.
@@ -58,6 +61,7 @@ class Module(eqx.Module):
     limits: tuple[tuple[float, float], ...] = eqx.field(static=True)
     cable_base: Array | None = None
     cable_platform: Array | None = None
+    cable_offset: Array | None = None
     mass: float | None = eqx.field(static=True, default=None)
     com: Array | None = None
     pretension: float | None = eqx.field(static=True, default=None)
@@ -85,6 +89,14 @@ class Module(eqx.Module):
                 raise ValueError(
                     f"module {self.name!r}: cable points must both be (n, 3), got "
                     f"{np.shape(self.cable_base)} and {np.shape(self.cable_platform)}"
+                )
+        if self.cable_offset is not None:
+            if self.cable_base is None:
+                raise ValueError(f"module {self.name!r}: cable_offset given without cables")
+            if np.shape(self.cable_offset) != (self.n_cables,):
+                raise ValueError(
+                    f"module {self.name!r}: cable_offset must be ({self.n_cables},), one per "
+                    f"cable, got {np.shape(self.cable_offset)}"
                 )
 
     @property

@@ -319,11 +319,11 @@ BAD_CASES = {
         lambda t: _drop_column(t, "measured.ry"),
         ["column 'measured.ry'", "missing column measured.ry"],
     ),
-    "cable lengths not supported yet": (
+    "incomplete cable set": (
         lambda t: _header(
             t, "shoulder.rx,shoulder.ry,shoulder.rz", "shoulder.l1,shoulder.l2,shoulder.l3"
         ),
-        ["line 3 (header row)", "column 'shoulder.l1'", "not supported yet", "shoulder.l3"],
+        ["line 3 (header row)", "column 'shoulder.l4'", "missing column shoulder.l4"],
     ),
     "joint and cable columns mixed": (
         lambda t: _add_column(t, "wrist.l1", "100"),

@@ -16,7 +16,8 @@ Format (see the README for a complete example)::
     kind = "revolute"                # spherical | revolute | prismatic
     axis = [0.0, 1.0, 0.0]           # revolute / prismatic only
     limits = [[0.0, 2.0]]            # one (low, high) per state entry
-    # optional: cables = [{ base = [x, y, z], platform = [x, y, z] }, ...] (mm),
+    # optional: cables = [{ base = [x, y, z], platform = [x, y, z] }, ...] (mm), each cable
+    #           optionally with offset = <mm> (measured length = attachment distance + offset),
     #           mass (kg), com (mm, platform frame), pretension (N), stiffness (N/mm)
 
 Frames are written back as ``xyz`` + ``rotvec`` (floats printed with all 17 significant digits,
@@ -152,18 +153,36 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         cables = spec["cables"]
         if not isinstance(cables, list) or not cables:
             raise _err(source, f"{where}.cables", "expected a non-empty list of {base, platform}")
-        base, plat = [], []
+        base, plat, offset = [], [], []
         for j, c in enumerate(cables):
-            if not isinstance(c, Mapping) or set(c) != {"base", "platform"}:
+            if not isinstance(c, Mapping) or not (
+                {"base", "platform"} <= set(c) <= {"base", "platform", "offset"}
+            ):
                 raise _err(
                     source,
                     f"{where}.cables[{j}]",
-                    "expected { base = [x, y, z], platform = [x, y, z] }",
+                    "expected { base = [x, y, z], platform = [x, y, z] } (optional offset = mm)",
                 )
             base.append(_vector(source, f"{where}.cables[{j}].base", c["base"], 3))
             plat.append(_vector(source, f"{where}.cables[{j}].platform", c["platform"], 3))
+            if "offset" in c:
+                v = c["offset"]
+                if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+                    raise _err(
+                        source, f"{where}.cables[{j}].offset", f"expected a number (mm), got {v!r}"
+                    )
+                offset.append(float(v))
+        if offset and len(offset) != len(cables):
+            raise _err(
+                source,
+                f"{where}.cables",
+                f"give 'offset' for every cable or for none "
+                f"({len(offset)} of {len(cables)} have one)",
+            )
         kwargs["cable_base"] = jnp.asarray(np.stack(base))
         kwargs["cable_platform"] = jnp.asarray(np.stack(plat))
+        if offset:
+            kwargs["cable_offset"] = jnp.asarray(np.asarray(offset))
     for key in ("mass", "pretension", "stiffness"):
         if key in spec:
             v = spec[key]
@@ -281,6 +300,9 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
                 {"base": _floats(b), "platform": _floats(p)}
                 for b, p in zip(np.asarray(m.cable_base), np.asarray(m.cable_platform), strict=True)
             ]
+            if m.cable_offset is not None:
+                for c, o in zip(d["cables"], np.asarray(m.cable_offset), strict=True):
+                    c["offset"] = float(o)
         if m.mass is not None:
             d["mass"] = float(m.mass)
         if m.com is not None:
