@@ -143,6 +143,7 @@ def _summary(table, conv, noise, sizes: DemoSizes, seed: int, timings: dict) -> 
             "unidentifiable": list(table.unidentifiable),
             "verification": {k: list(v) for k, v in table.verification.items()},
             "rounding_bound": {k: list(v) for k, v in table.rounding_bound.items()},
+            "rounding_rms": {k: list(v) for k, v in table.rounding_rms.items()},
         },
         "fig_5": {
             "m": conv.m,
@@ -236,6 +237,9 @@ def run(args: argparse.Namespace) -> int:
         pad_to=sizes.noise_pad_to,
         seed=seed,
         fast_compile=sizes.fast_compile,
+        progress=lambda m: print(
+            f"  Fig. 7: m = {m} done ({time.perf_counter() - t:.0f} s)", file=sys.stderr
+        ),
     )
     timings["fig_7"], cpu["fig_7"] = time.perf_counter() - t, time.process_time() - c
     emit("")
