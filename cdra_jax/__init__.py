@@ -13,6 +13,7 @@ from . import calibration as calibration
 from . import identifiability as identifiability
 from . import io as io
 from . import lie as lie
+from . import reproduction as reproduction
 from . import simulation as simulation
 from .arm import Arm as Arm
 from .arm import Module as Module
