@@ -349,55 +349,55 @@ def cable_moment_matrix(md: ModuleData, R: np.ndarray) -> np.ndarray:
     return np.swapaxes(mom, 1, 2)
 
 
-def _min_norm(A: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Minimum-norm ``s`` with ``A s = r`` (least squares if inconsistent) and its multiplier."""
-    lam, *_ = np.linalg.lstsq(A @ A.T, r, rcond=1e-12)
-    return A.T @ lam, lam
-
-
 def distribute_tensions(
-    A: np.ndarray, tau: np.ndarray, t_min: float, *, tol: float = 1e-9
+    A: np.ndarray, tau: np.ndarray, t_min: float, *, tol: float = 1e-11
 ) -> tuple[np.ndarray, bool]:
     """Cable tensions of least 2-norm above a floor that balance an external moment.
 
-    Solves ``min |t|^2`` s.t. ``A t + tau = 0``, ``t >= t_min`` (one pose; ``A (r, n)``,
-    ``tau (r,)`` N mm). With ``t = t_min + s`` this is a least-norm problem over ``s >= 0``:
-    a weighted NNLS (``scipy.optimize.nnls``) guesses the active set, then an active-set loop
-    polishes it to the exact KKT point (free ``s`` = minimum-norm solution on the support,
-    multipliers ``A_j^T lam <= 0`` on the bound).
+    Solves ``min |t|^2 / 2`` s.t. ``A t + tau = 0``, ``t >= t_min`` (one pose; ``A (r, n)``,
+    ``tau (r,)`` N mm). Feasibility comes from ``scipy.optimize.nnls`` on ``t = t_min + s``;
+    the optimum from the dual: ``t(lam) = max(t_min, A^T lam)`` satisfies every KKT condition
+    but the equilibrium, and the convex, once-differentiable dual objective
+    ``h(lam) = sum_j phi(a_j . lam) - lam . w`` (``w = -tau``, ``phi(x) = x^2 / 2`` above the
+    floor and ``t_min x - t_min^2 / 2`` below) has gradient ``A t(lam) - w``: a damped
+    semismooth Newton iteration on the ``r <= 3`` multipliers drives it to zero.
 
     Returns:
         ``(t (n,), feasible)``: ``feasible`` is False when no tensions above the floor balance
         the moment (the pose is outside the module's tension-closure workspace).
     """
     n = A.shape[1]
-    r = -tau - A @ np.full(n, t_min)
-    scale = max(np.linalg.norm(A), 1e-12)
-    rho = 1e6 / scale
-    s, _ = nnls(np.vstack([rho * A, np.eye(n)]), np.concatenate([rho * r, np.zeros(n)]))
-    free = s > 1e-9 * max(1.0, s.max(initial=0.0))
-    ok = False
-    for _ in range(4 * n):
-        s = np.zeros(n)
-        lam = np.zeros(A.shape[0])
-        if free.any():
-            s[free], lam = _min_norm(A[:, free], r)
-        if free.any() and s[free].min() < -tol * max(1.0, np.abs(s).max()):
-            j = np.flatnonzero(free)[np.argmin(s[free])]
-            free[j] = False
-            continue
-        grad = A.T @ lam
-        cand = (~free) & (grad > tol * max(1.0, np.abs(grad).max()))
-        if cand.any():
-            free[np.argmax(np.where(cand, grad, -np.inf))] = True
-            continue
-        ok = True
-        break
-    s = np.maximum(s, 0.0)
-    t = t_min + s
-    resid = np.linalg.norm(A @ t + tau)
-    feasible = ok and resid <= 1e-7 * max(1.0, np.linalg.norm(tau))
-    return t, bool(feasible)
+    w = -np.asarray(tau, dtype=float)
+    tmin = np.full(n, float(t_min))
+    ref = 1.0 + np.linalg.norm(w) + np.linalg.norm(A @ tmin)
+    s, res = nnls(A, w - A @ tmin)
+    if res > 1e-8 * ref:
+        return tmin + s, False
+
+    def parts(lam):
+        x = A.T @ lam
+        t = np.maximum(tmin, x)
+        h = np.sum(np.where(x > tmin, 0.5 * x * x, tmin * x - 0.5 * tmin * tmin)) - lam @ w
+        return x, t, h
+
+    lam = np.linalg.lstsq(A @ A.T, w, rcond=None)[0]
+    eps = 1e-13 * max(1.0, np.linalg.norm(A) ** 2)
+    x, t, h = parts(lam)
+    for _ in range(200):
+        grad = A @ t - w
+        if np.linalg.norm(grad) <= tol * ref:
+            return t, True
+        F = x > tmin
+        H = A[:, F] @ A[:, F].T + eps * np.eye(A.shape[0])
+        step = -np.linalg.solve(H, grad)
+        a = 1.0
+        while True:
+            x1, t1, h1 = parts(lam + a * step)
+            if h1 <= h + 1e-4 * a * (grad @ step) or a < 1e-14:
+                break
+            a *= 0.5
+        lam, x, t, h = lam + a * step, x1, t1, h1
+    return t, bool(np.linalg.norm(A @ t - w) <= 1e-8 * ref)
 
 
 def module_tensions(
