@@ -263,3 +263,30 @@ def test_harness_scores_a_perfect_and_a_blind_stand_in(tmp_path):
     assert t["false_positive_rate"]["rate"] == 0.0 and not blind["all_pass"]
     assert blind["heldout"]["median_after_over_floor"] == pytest.approx(1.0)
     assert len(blind["failures"]) == 3 + 2
+
+
+@pytest.mark.slow
+def test_statics_agree_with_the_packages_separate_implementation(arm):
+    """Two separate codes (the generator's NumPy statics and cdra_jax.modules.statics) give the
+    same gravity moments and the same least-norm tensions on the nominal arm."""
+    import equinox as eqx
+
+    from cdra_jax.modules.statics import gravity_torques, holding_tensions
+
+    rng = np.random.default_rng(6)
+    q = arm.limits[:, 0] + rng.random((8, arm.dof)) * np.ptp(arm.limits, axis=1)
+    payload = rng.choice(gen.PAYLOADS_KG, 8)
+    F = np.broadcast_to(arm.frames, (8,) + arm.frames.shape)
+    Mods = np.stack(
+        [gen.module_pose(md, q[:, s]) for md, s in zip(arm.modules, arm.slices, strict=True)], 1
+    )
+    tau = gen.gravity_moments(arm, F, Mods, payload)
+    theirs_tau = eqx.filter_jit(gravity_torques)(arm.arm, q, payload)
+    np.testing.assert_allclose(tau, np.asarray(theirs_tau), atol=1e-8)
+    theirs = eqx.filter_jit(holding_tensions)(arm.arm, q, payload)
+    for i, md in enumerate(arm.modules):
+        t, ok = gen.module_tensions(md, Mods[:, i, :3, :3], tau[:, i])
+        sol = theirs[md.name]
+        both = ok & np.asarray(sol.successful)
+        assert both.sum() >= 4
+        np.testing.assert_allclose(t[both], np.asarray(sol.tensions)[both], rtol=1e-7, atol=1e-7)
