@@ -1191,3 +1191,104 @@ def spawn(seed: int | Sequence[int], *key: int) -> np.random.Generator:
     """A generator for the recording keyed by ``(seed, *key)`` (independent streams)."""
     base = [seed] if isinstance(seed, int) else list(seed)
     return np.random.default_rng(np.random.SeedSequence([*base, *key]))
+
+
+# ----------------------------------------------------------------------------------------------
+# Command line: one recording by hand, or the table of physical parameters per size
+# ----------------------------------------------------------------------------------------------
+
+
+def parameter_table(
+    arm: ArmData,
+    sizes: Sequence[float],
+    m: int,
+    *,
+    noise_pos_mm: float = 0.08,
+    noise_rot_rad: float = 1e-3,
+    scenarios: int = 3,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Median physical parameter that gives each unabsorbed RMS, per effect and location."""
+    rows = []
+    for name, loc in effect_table(arm):
+        eff = draw_effect(arm, name, spawn(seed, 1), loc)
+        row: dict[str, Any] = {"effect": name, "location": loc, "parameter": eff.parameter}
+        for size in sizes:
+            vals = []
+            for k in range(scenarios):
+                scn = draw_scenario(
+                    arm,
+                    m,
+                    spawn(seed, 2, k),
+                    noise_pos_mm=noise_pos_mm,
+                    noise_rot_rad=noise_rot_rad,
+                )
+                try:
+                    vals.append(calibrate_size(scn, eff, size)[0])
+                except SizeError:
+                    vals.append(float("nan"))
+            row[f"{size:g}"] = float(np.median(vals))
+        rows.append(row)
+    return rows
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import argparse
+    import json
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    p = argparse.ArgumentParser(
+        description="Write one concealed-effect recording, or the table "
+        "of physical parameters per effect size."
+    )
+    p.add_argument("--model", type=Path, help="model TOML (default: the packaged CDRA)")
+    p.add_argument("--effect", default="none", choices=("none", *ALL_EFFECTS))
+    p.add_argument("--location", help="module / link / base (default: drawn at random)")
+    p.add_argument("--size", type=float, default=3.0, help="unabsorbed RMS, units of the noise")
+    p.add_argument("--poses", type=int, default=30)
+    p.add_argument("--noise-pos", type=float, default=0.08)
+    p.add_argument("--noise-rot", type=float, default=1e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, help="folder for model.toml, measurements.csv, truth.json")
+    p.add_argument("--table", help="print the parameter table for these sizes, e.g. 1,3,5")
+    a = p.parse_args(argv)
+    if a.model is None:
+        from cdra_jax.io import default_arm, default_model_text
+
+        arm = arm_data(default_arm(), default_model_text())
+    else:
+        arm = load_arm_data(a.model)
+    if a.table:
+        sizes = [float(x) for x in a.table.split(",")]
+        rows = parameter_table(
+            arm, sizes, a.poses, noise_pos_mm=a.noise_pos, noise_rot_rad=a.noise_rot, seed=a.seed
+        )
+        print(f"| effect | location | parameter | {' | '.join(f'{s:g} x noise' for s in sizes)} |")
+        print("|" + " --- |" * (3 + len(sizes)))
+        for r in rows:
+            vals = " | ".join(f"{r[f'{s:g}']:.3g}" for s in sizes)
+            print(f"| {r['effect']} | {r['location']} | {r['parameter']} | {vals} |")
+        return 0
+    if a.out is None:
+        p.error("--out is required to write a recording")
+    rng = spawn(a.seed)
+    scn = draw_scenario(arm, a.poses, rng, noise_pos_mm=a.noise_pos, noise_rot_rad=a.noise_rot)
+    eff = draw_effect(arm, a.effect, spawn(a.seed, 7), a.location)
+    rec = make_recording(scn, eff, a.size)
+    model, data = write_recording(rec, a.out)
+    (a.out / "truth.json").write_text(json.dumps(rec.truth(), indent=1) + "\n")
+    print(
+        f"{model}\n{data}\n{a.out / 'truth.json'}: {eff.name} at {eff.location}, "
+        f"{eff.parameter} = {rec.scale:.4g}, unabsorbed RMS {rec.achieved_size:.3f} x noise"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
