@@ -327,18 +327,23 @@ def score(rows: Sequence[Mapping[str, Any]], cfg: Config) -> dict[str, Any]:
             src = by_tag[r["twin_of"]]
             floor, after = r["heldout_before_dp"], src["heldout_after_dp"]
             before = src["heldout_before_dp"]
-            if floor and after is not None:
-                ratios.append(
-                    {
-                        "tag": src["tag"],
-                        "after_over_floor": after / floor,
-                        "before_over_floor": None if before is None else before / floor,
-                    }
-                )
+            ok = bool(floor) and floor > 0
+            # A verdict without a held-out number counts as outside the tolerance.
+            ratios.append(
+                {
+                    "tag": src["tag"],
+                    "floor_dp": floor,
+                    "after_over_floor": after / floor if ok and after is not None else None,
+                    "before_over_floor": before / floor if ok and before is not None else None,
+                }
+            )
     t_eff = _rate([r for r in eff if target(r)], lambda r: r["correct"])
     t_fp = _rate(clean, lambda r: not r["correct"])
     t_ool = _rate([r for r in ool if target(r)], lambda r: r["correct"])
-    t_ho = _rate(ratios, lambda x: x["after_over_floor"] <= HELDOUT_TOLERANCE)
+    t_ho = _rate(
+        ratios,
+        lambda x: x["after_over_floor"] is not None and x["after_over_floor"] <= HELDOUT_TOLERANCE,
+    )
 
     def verdict(stat, threshold, below=False):
         if stat["rate"] is None:
@@ -352,7 +357,7 @@ def score(rows: Sequence[Mapping[str, Any]], cfg: Config) -> dict[str, Any]:
         "unattributed_rate": verdict(t_ool, TARGETS["unattributed_rate"]),
         "heldout_within_20pct": verdict(t_ho, TARGETS["heldout_within_20pct"]),
     }
-    a = [x["after_over_floor"] for x in ratios]
+    a = [x["after_over_floor"] for x in ratios if x["after_over_floor"] is not None]
     b = [x["before_over_floor"] for x in ratios if x["before_over_floor"] is not None]
     heldout = {
         "median_after_over_floor": float(np.median(a)) if a else None,
@@ -437,6 +442,10 @@ def run(
         row = run_case(case, rec, out, diagnose)
         rows.append(row)
         _log_row(log, n + 1, len(cases), row)
+        if (n + 1) % 10 == 0 or n + 1 == len(cases):
+            spent = time.perf_counter() - t_start
+            left = spent / (n + 1) * (len(cases) - n - 1)
+            log(f"    {spent:.0f} s so far, about {left:.0f} s to go")
         if cfg.twins and case.kind == "effect" and in_target(case, cfg):
             twin = Case(
                 case.tag + "_twin",
