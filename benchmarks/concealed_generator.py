@@ -8,13 +8,14 @@ NOMINAL model TOML and a measurement CSV), so that an analyser can be scored on 
 effect from those files alone. The scorer is ``benchmarks/concealed_physics.py``.
 
 Independence. Everything physical here is written from first principles in NumPy/SciPy: the
-gravity loads of the bodies, the cable tension distribution (our own active-set QP on top of
-``scipy.optimize.nnls``), the cable forward kinematics (our own batched Gauss-Newton on the cable
-lengths), the joint stiffness law, the Euler-Bernoulli beam and the warm-up drift. Only the file
-readers/writers (``cdra_jax.io``), the SE(3) exponential (``cdra_jax.lie``) and, for the effect
-size, the paper's geometric calibration (``cdra_jax.calibrate_paper``) come from the package; no
-code of ``cdra_jax.physics``, ``cdra_jax.diagnosis`` or ``cdra_jax.modules`` is used, and every
-effect has a form richer than a linear candidate model (see each ``_apply_*`` function).
+gravity loads of the bodies, the cable tension distribution (feasibility by
+``scipy.optimize.nnls``, the least-norm tensions by a semismooth Newton iteration on the QP's
+dual), the cable forward kinematics (a batched Gauss-Newton on the cable lengths), the joint
+stiffness law, the Euler-Bernoulli beam, the warm-up drift and the SE(3) exponential. Only the
+file readers/writers (``cdra_jax.io``) and, for the effect size, the paper's geometric
+calibration (``cdra_jax.calibrate_paper``) come from the package; no code of
+``cdra_jax.physics``, ``cdra_jax.diagnosis`` or ``cdra_jax.modules`` is used, and every effect
+has a form richer than a linear candidate model (see each ``_apply_*`` function).
 
 The simulated arm (units mm, rad, kg, N, s; gravity from the model file)::
 
@@ -257,9 +258,20 @@ def _pose(R: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def _se3_exp(xi: np.ndarray) -> np.ndarray:
-    from cdra_jax import lie
-
-    return np.asarray(lie.se3_exp(np.asarray(xi, dtype=float)))
+    """Pose of twists ``(v, w)`` (Eq. 26): ``(..., 6) -> (..., 4, 4)``, ``[[exp(w^), V v]]``."""
+    xi = np.asarray(xi, dtype=float)
+    v, w = xi[..., :3], xi[..., 3:]
+    th2 = np.sum(w * w, axis=-1)[..., None, None]
+    small = th2 < 1e-4
+    t2 = np.where(small, 1.0, th2)
+    th = np.sqrt(t2)
+    b = np.where(small, 0.5 - th2 / 24 + th2**2 / 720, (1 - np.cos(th)) / t2)
+    c = np.where(small, 1 / 6 - th2 / 120 + th2**2 / 5040, (th - np.sin(th)) / (t2 * th))
+    W = np.zeros(w.shape[:-1] + (3, 3))
+    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    W = W - np.swapaxes(W, -1, -2)
+    V = np.eye(3) + b * W + c * (W @ W)
+    return _pose(_rot(w), np.einsum("...ij,...j->...i", V, v))
 
 
 def _apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -86,7 +86,7 @@ def load_analyser() -> Diagnose:
     """``cdra_jax.diagnosis.diagnose_files`` as a :data:`Diagnose`, imported only when needed."""
     try:
         from cdra_jax.diagnosis import diagnose_files
-    except ModuleNotFoundError as e:
+    except ImportError as e:
         if e.name in ("cdra_jax.diagnosis", "cdra_jax.physics"):
             raise SystemExit(
                 "concealed_physics: the analyser (cdra_jax.diagnosis.diagnose_files) is not in "

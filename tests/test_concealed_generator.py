@@ -290,3 +290,9 @@ def test_statics_agree_with_the_packages_separate_implementation(arm):
         both = ok & np.asarray(sol.successful)
         assert both.sum() >= 4
         np.testing.assert_allclose(t[both], np.asarray(sol.tensions)[both], rtol=1e-7, atol=1e-7)
+
+
+def test_missing_analyser_stops_with_a_message(monkeypatch):
+    monkeypatch.setitem(sys.modules, "cdra_jax.diagnosis", None)
+    with pytest.raises(SystemExit, match="cdra_jax.diagnosis.diagnose_files"):
+        harness.load_analyser()
