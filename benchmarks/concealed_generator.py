@@ -1008,8 +1008,15 @@ def _geometric_fit():
     return _GEOMETRIC_FIT[0]
 
 
-def geometric_fit(scn: Scenario, T: np.ndarray) -> tuple[float, np.ndarray]:
+def geometric_fit(
+    scn: Scenario, T: np.ndarray, rows: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
     """Geometry-only weighted fit (``calibrate_paper`` with the noise model) of poses ``T``.
+
+    Args:
+        scn: the scenario (states, noise level, model).
+        T: ``(m, 4, 4)`` poses to fit.
+        rows: fit only these poses (default all).
 
     Returns ``(unabsorbed_rms, calibrated_frames)``: the RMS over the ``6 m`` entries of the
     whitened residual (units of the noise) and the calibrated ``(K+1, 4, 4)`` frames.
@@ -1018,10 +1025,34 @@ def geometric_fit(scn: Scenario, T: np.ndarray) -> tuple[float, np.ndarray]:
 
     if not jax.config.jax_enable_x64:
         raise RuntimeError("enable float64 first: jax.config.update('jax_enable_x64', True)")
+    rows = np.arange(scn.m) if rows is None else np.asarray(rows)
     cost, frames, _ = _geometric_fit()(
-        scn.arm.arm, scn.q, np.asarray(T), scn.noise_pos_mm, scn.noise_rot_rad
+        scn.arm.arm, scn.q[rows], np.asarray(T)[rows], scn.noise_pos_mm, scn.noise_rot_rad
     )
-    return float(np.sqrt(float(cost) / (6 * scn.m))), np.asarray(frames)
+    return float(np.sqrt(float(cost) / (6 * len(rows)))), np.asarray(frames)
+
+
+def model_poses(scn: Scenario, frames: np.ndarray) -> np.ndarray:
+    """Tool poses ``(m, 4, 4)`` of the geometric model with fixed transforms ``frames``."""
+    F = np.broadcast_to(frames, (scn.m,) + frames.shape)
+    return chain_poses(F, scn.commanded_module_poses())[0]
+
+
+def geometric_heldout_dp(scn: Scenario, T: np.ndarray, folds: int = 2) -> float:
+    """Cross-validated position deviation (Eq. 20, mm) of a geometry-only calibration.
+
+    Poses are dealt to ``folds`` interleaved folds; each fold is predicted by the calibration
+    on the others, and the RMS position error over all predictions is returned. On a clean
+    recording this is the noise-only floor of the held-out ``delta_p``.
+    """
+    sq = np.empty(scn.m)
+    idx = np.arange(scn.m)
+    for f in range(folds):
+        test = idx % folds == f
+        _, frames = geometric_fit(scn, T, idx[~test])
+        d = T[test, :3, 3] - model_poses(scn, frames)[test, :3, 3]
+        sq[test] = np.sum(d * d, axis=-1)
+    return float(np.sqrt(np.mean(sq)))
 
 
 def unabsorbed_rms(scn: Scenario, eff: Effect, scale: float) -> float:

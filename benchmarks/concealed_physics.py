@@ -333,6 +333,7 @@ def score(rows: Sequence[Mapping[str, Any]], cfg: Config) -> dict[str, Any]:
                 {
                     "tag": src["tag"],
                     "floor_dp": floor,
+                    "own_floor_dp": r.get("own_floor_dp"),
                     "after_over_floor": after / floor if ok and after is not None else None,
                     "before_over_floor": before / floor if ok and before is not None else None,
                 }
@@ -359,8 +360,12 @@ def score(rows: Sequence[Mapping[str, Any]], cfg: Config) -> dict[str, Any]:
     }
     a = [x["after_over_floor"] for x in ratios if x["after_over_floor"] is not None]
     b = [x["before_over_floor"] for x in ratios if x["before_over_floor"] is not None]
+    own = [x["floor_dp"] / x["own_floor_dp"] for x in ratios if x["floor_dp"] and x["own_floor_dp"]]
     heldout = {
         "median_after_over_floor": float(np.median(a)) if a else None,
+        # consistency of the floor: the analyser's held-out dp on the clean twin over our own
+        # 2-fold cross-validated geometric calibration of the same file (split sizes differ)
+        "median_floor_over_own_2fold_floor": float(np.median(own)) if own else None,
         "median_before_over_floor": float(np.median(b)) if b else None,
         "per_recording": ratios,
     }
@@ -459,7 +464,9 @@ def run(
                 case.key,
                 twin_of=case.tag,
             )
-            trow = run_case(twin, gen.clean_twin(rec), out, diagnose)
+            twin_rec = gen.clean_twin(rec)
+            trow = run_case(twin, twin_rec, out, diagnose)
+            trow["own_floor_dp"] = gen.geometric_heldout_dp(twin_rec.scenario, twin_rec.measured)
             rows.append(trow)
             _log_row(log, n + 1, len(cases), trow)
     result = score(rows, cfg)
@@ -530,6 +537,11 @@ def report(result: Mapping[str, Any]) -> str:
         lines.append(
             f"  held-out dp / noise floor: median {ho['median_after_over_floor']:.3f} after "
             f"modelling, {ho['median_before_over_floor'] or float('nan'):.3f} before"
+        )
+    if ho.get("median_floor_over_own_2fold_floor") is not None:
+        lines.append(
+            "  analyser's floor / own 2-fold geometric floor (consistency): median "
+            f"{ho['median_floor_over_own_2fold_floor']:.3f}"
         )
     lines += ["", "effect confusion (rows: true, columns: reported):"]
     lines += _matrix(result["confusion_effect"])

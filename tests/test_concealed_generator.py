@@ -219,6 +219,10 @@ def test_twin_shares_poses_errors_and_noise(arm, scn):
         rec.measured[:, :3, 3] - rec.true[:, :3, 3],
         atol=1e-12,
     )
+    # the noise-only held-out floor: zero without noise, about the noise with it
+    assert gen.geometric_heldout_dp(scn, twin.true) < 1e-8
+    floor = gen.geometric_heldout_dp(scn, twin.measured)
+    assert np.sqrt(3) * 0.08 * 0.5 < floor < np.sqrt(3) * 0.08 * 4
     # drawing again with the same key gives the same scenario whatever the effect
     again = gen.draw_scenario(arm, M, gen.spawn(3, 1), noise_pos_mm=0.08, noise_rot_rad=1e-3)
     np.testing.assert_array_equal(again.q, scn.q)
