@@ -148,7 +148,7 @@ def plan(cfg: Config, arm: gen.ArmData) -> list[Case]:
     rng = gen.spawn(cfg.seed, 999)
     cases: list[Case] = []
     n_clean = cfg.trials if cfg.clean is None else cfg.clean
-    n_ool = max(2, cfg.trials // 3) if cfg.ool is None else cfg.ool
+    n_ool = max(2, cfg.trials // 2) if cfg.ool is None else cfg.ool
     ool = [e for e in gen.OUT_OF_LIBRARY if arm.locations(e)]
     effects = [e for e in gen.EFFECTS if arm.locations(e)]
     for a, (sp, sr) in enumerate(cfg.noise):
@@ -598,7 +598,9 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[Config, bool]:
     p.add_argument("--noise-pos", help="position noise (mm), comma list paired with --noise-rot")
     p.add_argument("--noise-rot", help="orientation noise (rad), comma list")
     p.add_argument("--clean", type=int, help="clean recordings per noise x poses (default trials)")
-    p.add_argument("--ool", type=int, help="out-of-library recordings per cell")
+    p.add_argument(
+        "--ool", type=int, help="out-of-library recordings per cell (default trials // 2)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, help="folder for the recordings (default: a temp folder)")
     p.add_argument("--no-twins", action="store_true", help="skip the clean twins (no held-out)")
