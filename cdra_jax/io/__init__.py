@@ -23,6 +23,7 @@ from .model import dumps_model as dumps_model
 from .model import load_model as load_model
 from .model import loads_model as loads_model
 from .model import save_model as save_model
+from .plausibility import check_plausibility as check_plausibility
 from .results import ResultFileError as ResultFileError
 from .results import calibrated_arm_from_result as calibrated_arm_from_result
 from .results import dumps_result as dumps_result
