@@ -13,6 +13,7 @@ from .measurements import check_pose_count as check_pose_count
 from .measurements import dumps_measurements as dumps_measurements
 from .measurements import load_measurements as load_measurements
 from .measurements import loads_measurements as loads_measurements
+from .measurements import rigid_transform_problem as rigid_transform_problem
 from .measurements import save_measurements as save_measurements
 from .model import ModelFileError as ModelFileError
 from .model import arm_from_dict as arm_from_dict

@@ -40,6 +40,7 @@ import tomli_w
 
 from .. import lie
 from ..arm import MODULE_KINDS, Arm, Module
+from .files import write_text_atomic
 
 _ORTHO_TOL = 1e-6
 _DEFAULT_MODEL = "cdra.toml"
@@ -143,7 +144,9 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         raise _err(source, f"{where}.limits", f"expected {dof} pairs [low, high]") from None
     if lim.shape != (dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
         raise _err(
-            source, f"{where}.limits", f"expected {dof} pairs [low, high] with low < high, got {limits!r}"
+            source,
+            f"{where}.limits",
+            f"expected {dof} pairs [low, high] with low < high, got {limits!r}",
         )
     kwargs: dict[str, Any] = {}
     if "cables" in spec:
@@ -154,7 +157,9 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         for j, c in enumerate(cables):
             if not isinstance(c, Mapping) or set(c) != {"base", "platform"}:
                 raise _err(
-                    source, f"{where}.cables[{j}]", "expected { base = [x, y, z], platform = [x, y, z] }"
+                    source,
+                    f"{where}.cables[{j}]",
+                    "expected { base = [x, y, z], platform = [x, y, z] }",
                 )
             base.append(_vector(source, f"{where}.cables[{j}].base", c["base"], 3))
             plat.append(_vector(source, f"{where}.cables[{j}].platform", c["platform"], 3))
@@ -300,6 +305,12 @@ def dumps_model(arm: Arm, *, exact: bool = False) -> str:
     return tomli_w.dumps(arm_to_dict(arm, exact=exact))
 
 
-def save_model(arm: Arm, path: str | os.PathLike, *, exact: bool = False) -> None:
-    """Write ``arm`` as a model TOML file (see :func:`dumps_model`)."""
-    Path(path).write_text(dumps_model(arm, exact=exact), encoding="utf-8")
+def save_model(
+    arm: Arm, path: str | os.PathLike, *, exact: bool = False, force: bool = False
+) -> Path:
+    """Write ``arm`` as a model TOML file (see :func:`dumps_model`); returns the path.
+
+    Written atomically (a reader or a crash never sees half a file); an existing file is only
+    replaced with ``force=True``, otherwise :class:`~cdra_jax.io.OutputExistsError`.
+    """
+    return write_text_atomic(path, dumps_model(arm, exact=exact), force=force)
