@@ -140,8 +140,14 @@ class Cauchy(RobustLoss):
     name: ClassVar[str] = "cauchy"
 
     def rho(self, z: ArrayLike) -> Array:
-        u = jnp.asarray(z) / self.c
-        return 0.5 * self.c**2 * jnp.log1p(u * u)
+        a = jnp.abs(jnp.asarray(z)) / self.c
+        big = a > 1e100  # (z/c)^2 would overflow: log1p(a^2) = 2 log(a) to double precision
+        small = jnp.where(big, 0.0, a)
+        return (
+            0.5
+            * self.c**2
+            * jnp.where(big, 2.0 * jnp.log(jnp.where(big, a, 1.0)), jnp.log1p(small * small))
+        )
 
     def influence(self, z: ArrayLike) -> Array:
         z = jnp.asarray(z)

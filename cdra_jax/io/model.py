@@ -101,6 +101,8 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
 
 
 def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
+    if not isinstance(spec, Mapping):
+        raise _err(source, f"modules[{i}]", f"expected a table ([[modules]]), got {spec!r}")
     name = spec.get("name")
     where = f"modules[{i}] ({name!s})"
     if not isinstance(name, str) or not name:
@@ -168,7 +170,12 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
     for key in ("mass", "pretension", "stiffness"):
         if key in spec:
             v = spec[key]
-            if not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not math.isfinite(v)
+                or v < 0
+            ):
                 raise _err(source, f"{where}.{key}", f"expected a non-negative number, got {v!r}")
             kwargs[key] = float(v)
     if "com" in spec:
@@ -189,6 +196,8 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
     unknown = sorted(set(spec) - {"name", "description", "gravity", "frames", "modules"})
     if unknown:
         raise _err(source, "top level", f"unknown keys {unknown}")
+    if not isinstance(spec.get("description", ""), str):
+        raise _err(source, "description", f"expected a string, got {spec['description']!r}")
     frames = spec.get("frames")
     modules = spec.get("modules")
     if not isinstance(modules, list) or not modules:
@@ -222,7 +231,7 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
         modules=mods,
         frame_names=tuple(names),
         name=spec["name"],
-        description=str(spec.get("description", "")),
+        description=spec.get("description", ""),
         gravity=jnp.asarray(gravity),
     )
 
