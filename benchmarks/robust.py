@@ -115,7 +115,7 @@ def main(argv=None) -> None:
         print(f"\n{title}  [{wall:.1f} s incl. compile]")
         head = (
             f"  {'fit':<22}{'held-out dp':>12}{'x clean':>9}{'dR [rad]':>11}"
-            f"{'true dp':>10}{'x clean':>9}{'outliers found':>16}{'false flags':>13}"
+            f"{'true dp':>12}{'x clean':>9}{'outliers found':>16}{'false flags':>13}"
             f"{'rounds':>8}{'converged':>11}"
         )
         print(head)
@@ -133,7 +133,7 @@ def main(argv=None) -> None:
             rounds = f"{np.median(r['rounds']):.0f}" if "rounds" in r else "-"
             print(
                 f"  {name:<22}{dpm:>9.4f} mm{dpm / ref_meas:>8.2f}x{np.median(r['dR_meas']):>11.2e}"
-                f"{dpt:>7.4f} mm{dpt / ref_true:>8.2f}x{found:>16}{false:>13}{rounds:>8}"
+                f"{dpt:>9.4f} mm{dpt / ref_true:>8.2f}x{found:>16}{false:>13}{rounds:>8}"
                 f"{100 * np.mean(r['ok']):>10.0f}%"
             )
 

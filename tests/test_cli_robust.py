@@ -198,7 +198,7 @@ FAILURES = {
         [],
         ["data.csv, line 1 (header row), column 'measured.z'", "missing column measured.z"],
     ),
-    "non-numeric cell": (
+    "extra field (unquoted comma)": (
         lambda t: _csv_edit(t, 3, "elbow.q", "1,2"),
         None,
         [],

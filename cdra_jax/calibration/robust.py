@@ -158,7 +158,7 @@ class Cauchy(RobustLoss):
         return 1.0 / (1.0 + u * u)
 
 
-LOSSES: dict[str, type[RobustLoss]] = {"huber": Huber, "cauchy": Cauchy}
+LOSSES: dict[str, Callable[[], RobustLoss]] = {"huber": Huber, "cauchy": Cauchy}
 """The robust losses by name (``--loss`` of ``cdra-jax calibrate``)."""
 
 
@@ -481,11 +481,10 @@ def calibrate_robust(
     )
     done = done | (max_rounds == 0)  # no reweighting asked for: the least-squares fit is it
     ok = ok & jnp.all(jnp.isfinite(frames)) & jnp.all(jnp.isfinite(z))
-    result = RESULTS.where(
-        ok,
-        RESULTS.where(done & inner_ok, RESULTS.successful, RESULTS.max_iterations_reached),
-        RESULTS.nonfinite,
-    )
+    # (type: ignore: equinox's stubs type the items as str, as in the solvers)
+    settled = done & inner_ok
+    status = RESULTS.where(settled, RESULTS.successful, RESULTS.max_iterations_reached)  # type: ignore[arg-type]
+    result = RESULTS.where(ok, status, RESULTS.nonfinite)  # type: ignore[arg-type]
     name = ("lm" if solver == "lm" else "weighted") + "+" + loss.name
     sol = CalibrationSolution(
         frames=frames,

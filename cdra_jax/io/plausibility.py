@@ -205,6 +205,7 @@ def _check_orientations(meas: Measurements, T_model: np.ndarray) -> list[str]:
     given = float(np.median(_angles(R, R_model)))
     alternatives: list[tuple[str, str, np.ndarray]] = []
     beyond_pi = False
+    cols: tuple[str, ...]
     if meas.orientation == "rotvec":
         cols = ROTVEC_COLUMNS
         rv = np.stack([meas.values[c] for c in cols], axis=-1)
