@@ -155,7 +155,7 @@ def arms(draw):
     )
 
 
-@fuzz(8)
+@fuzz(6)
 @given(arms(), st.integers(0, 2**31 - 1))
 def test_random_arms_have_finite_kinematics_identifiability_and_round_trip(arm, seed):
     rng = np.random.default_rng(seed)

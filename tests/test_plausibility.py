@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import re
 
 import equinox as eqx
@@ -12,7 +13,18 @@ import pytest
 from _robust_data import M, problem
 
 from cdra_jax import tool_pose
-from cdra_jax.io import MeasurementFileError, Measurements, dumps_measurements, loads_measurements
+from cdra_jax.io import (
+    MeasurementFileError,
+    Measurements,
+    OutputExistsError,
+    ResultFileError,
+    dumps_measurements,
+    load_model,
+    loads_measurements,
+    loads_result,
+    rigid_transform_problem,
+    save_model,
+)
 from cdra_jax.io.plausibility import check_plausibility
 
 
@@ -168,3 +180,48 @@ def test_pose_plan_without_measured_poses_gets_state_checks(cdra, data):
     with pytest.raises(MeasurementFileError, match="looks like degrees"):
         check_plausibility(cdra, plan)
     assert check_plausibility(cdra, Measurements.from_arrays(cdra, q)) == ()
+
+
+def test_left_handed_and_non_orthonormal_matrices_are_refused_everywhere(cdra, data, tmp_path):
+    q, T, _ = data
+    flipped = T.copy()
+    flipped[2, :3, 2] *= -1.0  # one axis flipped: a reflection
+    with pytest.raises(ValueError, match=r"measured\[2\]: .*reflection \(det R = -1, a left-h"):
+        Measurements.from_arrays(cdra, q, flipped)
+    scaled = T.copy()
+    scaled[4, :3, :3] *= 1.001
+    with pytest.raises(ValueError, match=r"measured\[4\]: .*not orthonormal \(max \|R\^T R - I\|"):
+        Measurements.from_arrays(cdra, q, scaled)
+    assert rigid_transform_problem(T[0]) is None
+    assert "last row" in rigid_transform_problem(np.ones((4, 4)))
+    # a result file whose calibrated frame is left-handed
+    F = np.asarray(cdra.frames)
+    frame = {"matrix": F[0].tolist()}
+    bad = F[0].copy()
+    bad[:3, 0] *= -1.0
+    result = {
+        "solver": "paper",
+        "converged": True,
+        "result": "successful",
+        "initial": {},
+        "iterations": [],
+        "frames": {
+            "base": {"nominal": frame, "calibrated": {"matrix": bad.tolist()}, "error_twist": {}}
+        },
+        "identifiability": {"rank": 22, "n_params": 24},
+    }
+    with pytest.raises(
+        ResultFileError, match="r.json: frames.base.calibrated.matrix: .*reflection"
+    ):
+        loads_result(json.dumps(result), "r.json")
+
+
+def test_save_model_is_atomic_and_refuses_to_overwrite(cdra, tmp_path):
+    path = tmp_path / "arm.toml"
+    assert save_model(cdra, path) == path
+    before = path.read_text()
+    with pytest.raises(OutputExistsError, match="arm.toml: file exists"):
+        save_model(cdra, path, exact=True)
+    assert path.read_text() == before and list(tmp_path.iterdir()) == [path]  # no temp left
+    save_model(cdra, path, exact=True, force=True)
+    np.testing.assert_array_equal(np.asarray(load_model(path).frames), np.asarray(cdra.frames))
