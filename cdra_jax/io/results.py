@@ -150,7 +150,7 @@ def result_to_dict(
             and settings are written too).
         q: ``(m, dof)`` module states of the fitted poses.
         measured: ``(m, 4, 4)`` measured tool poses.
-        noise: the noise model used for weighting, or ``None``.
+        noise: the noise model used for weighting (scalar stds), or ``None``.
         identifiability: ``identifiability.analyze(...).to_dict()``; computed at the
             nominal model (with ``measured`` and ``noise``) when ``None``.
         pose_ids: identifiers of the poses (default ``"1"``, ``"2"``, ...).
