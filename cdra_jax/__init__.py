@@ -26,9 +26,15 @@ from .calibration import CalibrationSolution as CalibrationSolution
 from .calibration import NoiseModel as NoiseModel
 from .calibration import calibrate_lm as calibrate_lm
 from .calibration import calibrate_paper as calibrate_paper
+from .calibration import calibrate_robust as calibrate_robust
 from .calibration import deviation_metrics as deviation_metrics
+from .io import check_plausibility as check_plausibility
 from .io import default_arm as default_arm
+from .io import load_measurements as load_measurements
+from .io import load_result as load_result
 from .io import load_model as load_model
+from .io import save_measurements as save_measurements
 from .io import save_model as save_model
+from .io import save_result as save_result
 
 __version__ = importlib.metadata.version("cdra_jax")

@@ -4,10 +4,13 @@ Usage::
 
     cdra-jax simulate --poses 20 --seed 1 --out poses.csv --truth truth.json
     cdra-jax calibrate --data poses.csv --out result.json [--model arm.toml] [--solver paper|lm]
+        [--loss ls|huber|cauchy]
 
 Exit codes: 0 success; 1 bad input or a file problem (one line ``error: ...`` on stderr, no
 traceback); 2 wrong usage (argparse); 3 the calibration did not converge (the result file is
-still written, with ``"converged": false``).
+still written, with ``"converged": false``). Warnings (implausible data, a poorly conditioned
+pose set, outliers) do not change the exit code: each is one ``warning: ...`` line on stderr and
+an entry of ``warnings`` in the result file.
 
 Adding a subcommand: write a ``_register_<name>(subparsers)`` function that adds its parser and
 sets ``func`` (a callable ``args -> int``) with ``set_defaults``, and append it to
@@ -170,10 +173,17 @@ def _register_calibrate(subparsers) -> None:
     )
     _add_noise_options(p, "of the measured tool poses, to weight the residual")
     p.add_argument(
+        "--loss",
+        choices=("ls", "huber", "cauchy"),
+        default="ls",
+        help="ls: plain least squares, as in the paper (default); huber or cauchy: robust "
+        "estimation that down-weights outlying poses (iteratively reweighted, around --solver)",
+    )
+    p.add_argument(
         "--max-iterations",
         metavar="N",
         type=int,
-        help="iteration cap (default: 20 for paper, 50 for lm)",
+        help="iteration cap (default: 20 for paper, 50 for lm; per round for a robust loss)",
     )
     _add_force_option(p)
     p.set_defaults(func=_run_calibrate)
@@ -185,22 +195,40 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         raise ValueError(f"--max-iterations must be at least 1, got {args.max_iterations}")
     _check_output(args.out, args.force, "--out")
 
-    from .calibration import calibrate_lm, calibrate_paper
+    from .calibration import calibrate_lm, calibrate_paper, calibrate_robust
+    from .conditioning import conditioning
     from .identifiability import analyze
-    from .io import check_pose_count, load_measurements, result_to_dict, save_result
+    from .io import (
+        check_plausibility,
+        check_pose_count,
+        load_measurements,
+        result_to_dict,
+        save_result,
+    )
 
     arm, model_label = _load_arm(args.model)
     meas = load_measurements(args.data, arm)
     check_pose_count(meas)
     assert meas.measured is not None  # the reader demands the measured columns by default
-    solve = calibrate_paper if args.solver == "paper" else calibrate_lm
+    # Wrong units or conventions stop here with an error naming the column; the rest warns.
+    warnings = list(check_plausibility(arm, meas))
     kwargs: dict[str, Any] = {"throw": False}
     if args.max_iterations is not None:
         kwargs["max_iterations"] = args.max_iterations
-    sol = _jitted(solve)(arm, meas.q, meas.measured, noise, **kwargs)
+    sol: Any
+    if args.loss == "ls":
+        solve = calibrate_paper if args.solver == "paper" else calibrate_lm
+        sol = _jitted(solve)(arm, meas.q, meas.measured, noise, **kwargs)
+    else:
+        kwargs.update(loss=args.loss, solver=args.solver)
+        sol = _jitted(calibrate_robust)(arm, meas.q, meas.measured, noise, **kwargs)
     # Unidentifiable directions are reported at the nominal model, where they read simply
     # (e.g. "0.707 upper_arm.vy - 0.707 forearm.vy" for the CDRA).
     report = analyze(arm, meas.q, meas.measured, noise)
+    cond = conditioning(arm, meas.q, meas.measured, noise)
+    shown = list(warnings)  # printed on stderr; the identifiability ones are in the summary
+    if cond.warning:
+        shown.append(cond.warning)
     result = result_to_dict(
         arm,
         sol,
@@ -210,10 +238,15 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         identifiability=report.to_dict(),
         pose_ids=meas.pose_ids,
         inputs={"model": model_label, "data": args.data, "data_sha256": _sha256(args.data)},
+        conditioning=cond.to_dict(),
+        warnings=[*warnings, *report.warnings, *([cond.warning] if cond.warning else [])],
     )
+    shown += [w for w in result["warnings"] if w not in shown and w not in report.warnings]
     print(_calibration_summary(arm, result, model_label, args.data, report.summary()))
     path = save_result(result, args.out, force=args.force)
     print(f"wrote {path}")
+    for w in shown:
+        print(f"warning: {w}", file=sys.stderr)
     if not result["converged"]:
         print(f"warning: not converged: {result['message']}", file=sys.stderr)
         return EXIT_NOT_CONVERGED
@@ -227,10 +260,21 @@ def _calibration_summary(arm, r: dict, model_label: str, data: str, ident: str) 
         "paper": "paper (the paper's unweighted iterative least squares, Eqs. 9-14)",
         "weighted": "paper, weighted by the noise model (iterative least squares, Eqs. 9-14)",
         "lm": "lm (Levenberg-Marquardt)" + ("" if r["noise"] is None else ", weighted"),
-    }[r["solver"]]
+    }
+    rob = r.get("robust")
+    out = r.get("outliers") or {}
+    scale = out.get("scale") or {}
+    if rob is None:
+        text = solver_text[r["solver"]]
+    else:
+        text = (
+            f"{rob['loss']} (robust, c = {rob['tuning_constant']:g}) by iteratively reweighted "
+            f"least squares around {solver_text[rob['inner_solver']].split(' (')[0]}; "
+            f"{rob['rounds']} reweighting round{'s' if rob['rounds'] != 1 else ''}"
+        )
     lines = [
         f"model: {arm.name} ({model_label}); data: {data} ({r['n_poses']} poses)",
-        f"solver: {solver_text}",
+        f"solver: {text}",
     ]
     if r["noise"] is not None:
         n = r["noise"]
@@ -260,6 +304,19 @@ def _calibration_summary(arm, r: dict, model_label: str, data: str, ident: str) 
         names, rows, "identified frame errors dt = log(T^c T^-1) (Eqs. 15-18; v mm, w rad):"
     )
     lines.append(ident)
+    if scale:
+        flagged = [x for x in r["residuals"] if x.get("outlier")]
+        sp, sr = _fmt(scale["position_mm"], ".3g"), _fmt(scale["rotation_rad"], ".3g")
+        lines.append(
+            f"outliers (z > {out['threshold']:.3g}; residual scale {sp} mm, {sr} rad from the "
+            f"{scale['source']}): " + (str(len(flagged)) if flagged else "none")
+        )
+        for x in sorted(flagged, key=lambda x: -(x["z"] or 0.0)):
+            lines.append(
+                f"  {x['pose']}: z = {_fmt(x['z'], '.3g')}, weight {_fmt(x['weight'], '.2g')}, "
+                f"calibrated residual {_fmt(x['calibrated_position_mm'], '.3g')} mm, "
+                f"{_fmt(x['calibrated_rotation_rad'], '.3g')} rad"
+            )
     return "\n".join(lines)
 
 

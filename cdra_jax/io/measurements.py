@@ -293,19 +293,44 @@ def _rotvec_quaternion(T: Array) -> tuple[Array, Array]:
     return lie.so3_log(lie.rotation(T)), lie.rotation_to_quaternion(lie.rotation(T))
 
 
+def rigid_transform_problem(T: ArrayLike, tol: float = _ORTHO_TOL) -> str | None:
+    """What keeps a 4x4 matrix from being a rigid transform ``[[R, p], [0, 1]]``, or ``None``.
+
+    Checks the shape, finiteness, the last row, orthonormality of ``R`` (``max |R^T R - I|``
+    up to ``tol``) and handedness (``det R = +1``; a reflection is a left-handed frame).
+    """
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "contains NaN or inf"
+    if np.any(T[3] != np.array([0.0, 0.0, 0.0, 1.0])):
+        return f"last row must be [0, 0, 0, 1], got {T[3].tolist()}"
+    R = T[:3, :3]
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if dev > tol:
+        return (
+            f"rotation block is not orthonormal (max |R^T R - I| = {dev:.2e}): a scaled or "
+            "sheared matrix, or one written with too few digits?"
+        )
+    if np.linalg.det(R) < 0:
+        return (
+            "rotation block is a reflection (det R = -1, a left-handed frame): is one axis of "
+            "the measuring device or of the exported frame flipped?"
+        )
+    return None
+
+
 def _check_poses(T: np.ndarray, m: int) -> None:
     if T.shape != (m, 4, 4):
         raise ValueError(f"measured must have shape ({m}, 4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError("measured contains NaN or inf")
-    R = T[:, :3, :3]
-    dev = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0.0)
-    bottom = np.abs(T[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(initial=0.0)
-    if dev > _ORTHO_TOL or bottom != 0.0 or np.any(np.linalg.det(R) < 0):
-        raise ValueError(
-            "measured must hold rigid transforms [[R, p], [0, 1]] with R a rotation "
-            f"(max |R^T R - I| = {dev:.2e})"
-        )
+    for i in range(m):
+        problem = rigid_transform_problem(T[i])
+        if problem:
+            raise ValueError(
+                f"measured[{i}]: measured poses must be rigid transforms [[R, p], [0, 1]]; "
+                f"{problem}"
+            )
 
 
 def _check_ids(ids: Sequence[str], err) -> None:
