@@ -126,23 +126,25 @@ def spherical(
     name: str, limits: Sequence[tuple[float, float]] = ((-1.0, 1.0),) * 3, **kwargs
 ) -> Module:
     """A 3-DOF spherical module (state: rotation vector, rad)."""
-    return Module(
-        name=name, kind="spherical", axis=jnp.zeros(3), limits=_limits(limits), **kwargs
-    )
+    return Module(name=name, kind="spherical", axis=jnp.zeros(3), limits=_limits(limits), **kwargs)
 
 
 def revolute(
     name: str, axis: ArrayLike, limits: tuple[float, float] = (-np.pi, np.pi), **kwargs
 ) -> Module:
     """A 1-DOF revolute module about ``axis`` (state: angle, rad)."""
-    return Module(name=name, kind="revolute", axis=_unit(axis, name), limits=_limits([limits]), **kwargs)
+    return Module(
+        name=name, kind="revolute", axis=_unit(axis, name), limits=_limits([limits]), **kwargs
+    )
 
 
 def prismatic(
     name: str, axis: ArrayLike, limits: tuple[float, float] = (-100.0, 100.0), **kwargs
 ) -> Module:
     """A 1-DOF prismatic module along ``axis`` (state: displacement, mm)."""
-    return Module(name=name, kind="prismatic", axis=_unit(axis, name), limits=_limits([limits]), **kwargs)
+    return Module(
+        name=name, kind="prismatic", axis=_unit(axis, name), limits=_limits([limits]), **kwargs
+    )
 
 
 def _limits(limits: Sequence[Sequence[float]]) -> tuple[tuple[float, float], ...]:
@@ -254,7 +256,9 @@ class Arm(eqx.Module):
 
 def module_poses(arm: Arm, q: ArrayLike) -> Array:
     """Module platform poses ``(..., K, 4, 4)`` from the flat state ``q (..., dof)``."""
-    return jnp.stack([m.pose(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)], -3)
+    return jnp.stack(
+        [m.pose(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)], -3
+    )
 
 
 def chain(frames: ArrayLike, poses: ArrayLike) -> tuple[Array, Array]:

@@ -91,8 +91,9 @@ class IdentifiabilityReport:
         return "\n".join(lines)
 
 
-def stacked_jacobian(arm: Arm, q: ArrayLike, measured: ArrayLike | None = None,
-                     noise: NoiseModel | None = None) -> np.ndarray:
+def stacked_jacobian(
+    arm: Arm, q: ArrayLike, measured: ArrayLike | None = None, noise: NoiseModel | None = None
+) -> np.ndarray:
     """``D~ (6m, 6(K+1))`` of Eq. 9 at the model ``arm`` (whitened when ``noise`` is given).
 
     Whitening needs the tool positions; without ``measured`` the model's are used.

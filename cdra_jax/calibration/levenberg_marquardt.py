@@ -118,7 +118,9 @@ def calibrate_lm(
     dRs = dRs.at[k].set(dR)
     ok = ok & jnp.isfinite(dp) & jnp.isfinite(dR)
     result = RESULTS.where(
-        ok, RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached), RESULTS.nonfinite
+        ok,
+        RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached),
+        RESULTS.nonfinite,
     )
     sol = CalibrationSolution(
         frames=frames,
@@ -136,5 +138,3 @@ def calibrate_lm(
     if throw:
         sol = result.error_if(sol, result != RESULTS.successful)
     return sol
-
-
