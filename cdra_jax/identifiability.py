@@ -211,13 +211,14 @@ def readable_directions(
         return np.zeros((0, n)), np.zeros((0, n))
     rot = np.array([i for i, name in enumerate(names) if _is_rotation(name)], dtype=int)
     trans = np.array([i for i, name in enumerate(names) if not _is_rotation(name)], dtype=int)
-    # Split the subspace: combinations with no rotation content, and a complement.
+    # Split the subspace: combinations with no rotation content, and their orthogonal
+    # complement in it (N is orthonormal and the rows of Qt are orthogonal), whose translation
+    # parts, the lever arms, are therefore orthogonal to every pure translation.
     _, sw, Qt = np.linalg.svd(N[rot], full_matrices=True)
     r = int(np.sum(sw > 1e-8))
     N_trans = N @ Qt[r:].T
     N_trans[rot] = 0.0
     N_rot = N @ Qt[:r].T
-    N_rot -= N_trans @ (N_trans.T @ N_rot)  # lever arms orthogonal to pure translations
     blocks = []
     if r:
         blocks.append(_normalise(_echelon(N_rot, rot), rot))
