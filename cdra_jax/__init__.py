@@ -31,8 +31,8 @@ from .calibration import deviation_metrics as deviation_metrics
 from .io import check_plausibility as check_plausibility
 from .io import default_arm as default_arm
 from .io import load_measurements as load_measurements
-from .io import load_result as load_result
 from .io import load_model as load_model
+from .io import load_result as load_result
 from .io import save_measurements as save_measurements
 from .io import save_model as save_model
 from .io import save_result as save_result
