@@ -78,6 +78,14 @@ def test_noise_free_recovery_of_the_elbow_invariants(cdra):
     assert set(want) == {"offset", "c", "p", "phase"}
     for key in want:
         np.testing.assert_allclose(got[key], want[key], rtol=1e-10, atol=1e-8)
+    # noisy lengths: badly conditioned (2 cables, one redundant length per pose), but the damped
+    # iteration converges to a residual of the size the noise implies instead of diverging
+    noisy = lengths + 0.02 * jax.random.normal(jax.random.PRNGKey(4), lengths.shape)
+    sol = _solve(nominal, noisy)
+    assert result_names(sol.result) == "successful"
+    m = lengths.shape[0]
+    expect = 0.02 * np.sqrt((m * (2 - 1) - 7) / (m * 2))
+    assert 0.7 < float(sol.residual_rms) / expect < 1.3
 
 
 def test_recovery_with_length_noise_is_within_its_predicted_uncertainty(cdra):
