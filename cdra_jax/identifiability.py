@@ -191,6 +191,29 @@ def _normalise(B: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return B
 
 
+def sparse_basis(N: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Rotate an orthonormal basis (columns) of any subspace into a sparse, readable one (rows).
+
+    A pivoted QR of ``N^T`` picks, for each direction, the parameter that dominates it; the basis
+    is reduced to that echelon form and orthonormalised in pivot order (Gram-Schmidt keeps the
+    sparsity of the first vectors). Each vector's largest entry is made positive and entries
+    below ``tol`` are zeroed. Used where parameters have no frame/twist structure (e.g. the
+    module self-calibration); :func:`readable_directions` is the frame-aware form.
+    """
+    if N.shape[1] == 0:
+        return np.zeros((0, N.shape[0]))
+    _, _, piv = scipy.linalg.qr(N.T, pivoting=True)
+    k = N.shape[1]
+    B = N @ np.linalg.solve(N[piv[:k], :], np.eye(k))  # B[piv[:k]] = I
+    Q, _ = np.linalg.qr(B)
+    for j in range(k):
+        i = np.argmax(np.abs(Q[:, j]))
+        if Q[i, j] < 0:
+            Q[:, j] = -Q[:, j]
+    Q[np.abs(Q) < tol] = 0.0
+    return Q.T
+
+
 def readable_directions(
     N: np.ndarray, names: tuple[str, ...], tol: float = 1e-9
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -63,7 +63,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm, Module
 from ..calibration.linear import default_rcond
-from ..identifiability import _readable_basis, format_combination
+from ..identifiability import format_combination, sparse_basis
 from ._linalg import small_inv
 from ._results import select
 from .cables import _length_jacobian, _points, cable_forward_kinematics, require_cables
@@ -669,7 +669,7 @@ def analyze_self_calibration(
             B = B - Qs @ (Qs.T @ B)
             U, sv, _ = np.linalg.svd(B, full_matrices=False)
             B = U[:, : null.shape[0] - len(vecs)]
-        for row_vec in _readable_basis(B):
+        for row_vec in sparse_basis(B):
             words.append(format_combination(row_vec, names))
     cond = float(s_full[0] / s_full[rank - 1]) if rank else float("inf")
     return SelfCalibrationReport(
