@@ -137,13 +137,13 @@ def _simulation(key, arm, X, d_v, d_w, m: int, noise, random_errors: bool):
 
     from . import lie
     from .arm import apply_frame_errors
-    from .simulation import measure, random_frame_errors, sample_states
+    from .simulation import measure, random_frame_errors, sample_poses
 
     k_err, k_states, k_noise = jax.random.split(key, 3)
     if random_errors:
         X = random_frame_errors(k_err, arm, d_v, d_w).reshape(-1, 6)
     actual = apply_frame_errors(arm, X)
-    q = sample_states(k_states, arm, m)
+    q = sample_poses(k_states, arm, m)
     xyz, rotvec = lie.to_xyz_rotvec(actual.frames)
     return X, q, measure(k_noise, actual, q, noise), actual.frames, xyz, rotvec
 

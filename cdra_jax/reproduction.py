@@ -63,10 +63,10 @@ from .identifiability import analyze, format_combination
 from .io.model import default_arm
 from .simulation import StateSampler
 
-DEFAULT_SAMPLER: StateSampler = simulation.sample_states
+DEFAULT_SAMPLER: StateSampler = simulation.sample_poses
 """Module-state sampler used by every study unless one is passed (``(key, arm, m) -> (m, dof)``,
-uniform within the joint limits). The paper samples within the joint limits *and* under
-tension closure (Section V, step 1); swap a tension-closure sampler in here."""
+uniform within the joint limits and, for a model with cables, under tension closure, as the
+paper's Section V step 1 asks: :func:`cdra_jax.simulation.sample_poses`)."""
 
 TABLE_I_FRAMES: tuple[str, ...] = ("base", "upper_arm", "forearm", "tool")
 """Table I's rows, in our frame names (paper: OBs, SBe, EBw, WF)."""

@@ -34,6 +34,20 @@ def sample_states(key: Array, arm: Arm, m: int, dtype=None) -> Array:
     return lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
 
 
+def sample_poses(key: Array, arm: Arm, m: int, dtype=None) -> Array:
+    """Section V step 1: ``m`` states within the joint limits that the arm can hold: ``(m, dof)``.
+
+    When every module of ``arm`` has cables in the model, states are drawn uniformly within the
+    limits and rejected unless every module has tension closure with a margin
+    (:func:`cdra_jax.modules.sample_feasible_states`); otherwise this is :func:`sample_states`.
+    """
+    if arm.modules and all(mod.n_cables > 0 for mod in arm.modules):
+        from .modules.tension import sample_feasible_states
+
+        return sample_feasible_states(key, arm, m, dtype)
+    return sample_states(key, arm, m, dtype)
+
+
 def random_frame_errors(
     key: Array, arm: Arm, d_v: float = 1.0, d_w: float = 0.05, dtype=None
 ) -> Array:
