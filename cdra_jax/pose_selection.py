@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -83,6 +84,7 @@ class PoseSelection:
     n_exchanges: int
 
 
+@eqx.filter_jit
 def information_blocks(arm: Arm, q: ArrayLike, noise: NoiseModel | None) -> Array:
     """Per-pose (whitened) Jacobian blocks ``A_i = G_i D_i``: ``(N, dof) -> (N, 6, n)``.
 

@@ -23,8 +23,9 @@ mm^2, mm rad and rad^2 accordingly. Linearise at the calibrated model (``solutio
 the measured tool poses for whitening to describe a finished calibration, or at the nominal model
 to plan one (nothing needs to have been measured: the model's tool poses are used for whitening).
 
-Everything up to :class:`PoseCovariance` is pure JAX (jit/vmap-able); :func:`analyze_uncertainty`
-and :func:`uncertainty_dict` build a JSON-ready report on the host.
+Everything up to :func:`predicted_pose_covariance` is pure JAX, jitted (``equinox.filter_jit``:
+one compile per shape instead of many small eager ones) and vmap-able;
+:func:`analyze_uncertainty` and :func:`uncertainty_dict` build a JSON-ready report on the host.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ IDENTIFIABLE_TOL = 1e-8
 """A direction ``c`` counts as identifiable when ``|P_null c| <= IDENTIFIABLE_TOL |c|``."""
 
 
+@eqx.filter_jit
 def whitened_jacobian(
     arm: Arm, q: ArrayLike, noise: NoiseModel | None, measured: ArrayLike | None = None
 ) -> Array:
@@ -116,6 +118,7 @@ class ParameterUncertainty(eqx.Module):
         return jnp.where(self.identifiable(c, tol), var, jnp.inf)
 
 
+@eqx.filter_jit
 def parameter_covariance(
     arm: Arm,
     q: ArrayLike,
@@ -149,6 +152,7 @@ def parameter_covariance(
     )
 
 
+@eqx.filter_jit
 def cramer_rao_bound(
     arm: Arm,
     q: ArrayLike,
@@ -202,6 +206,7 @@ class PoseCovariance(eqx.Module):
         return jnp.sqrt(jnp.mean(jnp.trace(self.rotation, axis1=-2, axis2=-1), axis=-1))
 
 
+@eqx.filter_jit
 def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseCovariance:
     """Propagate a parameter covariance ``(n, n)`` to the tool poses at ``q_eval (k, dof)``.
 
@@ -221,6 +226,7 @@ def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseC
     return PoseCovariance(twist=twist, position=position, rotation=twist[..., 3:, 3:])
 
 
+@eqx.filter_jit
 def predicted_pose_covariance(
     arm: Arm,
     q: ArrayLike,

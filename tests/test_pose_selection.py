@@ -85,7 +85,7 @@ def test_selected_poses_predict_better_than_random(cdra):
     m = 6  # pool and m as in the CLI test below, so the jitted selection compiles once
     sel = select_poses(cdra, m, NOISE, key=jax.random.PRNGKey(0), pool_size=300)
     assert sel.states.shape == (m, 7) and sel.rank == 22
-    q_eval = sample_states(jax.random.PRNGKey(1), cdra, 300)
+    q_eval = sample_states(jax.random.PRNGKey(1), cdra, 100)
     chosen = float(predicted_pose_covariance(cdra, sel.states, NOISE, q_eval).expected_delta_p)
     rng = np.random.default_rng(0)
     random_sets = [
