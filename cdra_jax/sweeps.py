@@ -296,11 +296,11 @@ def read_sweep(path: str | os.PathLike) -> SweepTable:
         import pyarrow.parquet as pq
 
         t = pq.read_table(path)
-        meta = {k.decode(): v.decode() for k, v in (t.schema.metadata or {}).items()}
+        pmeta = {k.decode(): v.decode() for k, v in (t.schema.metadata or {}).items()}
         missing = [c for c in COLUMNS if c not in t.column_names]
         if missing:
             raise ValueError(f"{path}: missing column(s) {missing}")
-        return SweepTable({c: t.column(c).to_numpy(zero_copy_only=False) for c in COLUMNS}, meta)
+        return SweepTable({c: t.column(c).to_numpy(zero_copy_only=False) for c in COLUMNS}, pmeta)
     meta: dict[str, str] = {}
     with open(path, newline="") as f:
         line_no = 0
@@ -345,6 +345,7 @@ def _read_bool(v: str) -> bool:
 def _typed_block(path, first_line: int, rows: list[list[str]], idx: dict[str, int]) -> dict:
     """Convert a block of CSV rows to typed columns; errors name the line and the column."""
     out: dict[str, np.ndarray] = {}
+    conv: Callable[[str], object]
     for c in COLUMNS:
         if c in _STR_COLUMNS:
             conv, dtype, kind = str, object, "text"

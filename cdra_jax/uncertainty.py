@@ -444,7 +444,9 @@ def analyze_uncertainty(
         pose_rotation_rms=np.asarray(pc.rotation_rms),
         expected_delta_p=float(pc.expected_delta_p),
         expected_delta_R=float(pc.expected_delta_R),
-        eval_states="the calibration states" if q_eval is None else f"{len(q_eval)} given states",
+        eval_states="the calibration states"
+        if q_eval is None
+        else f"{np.shape(q_eval)[0]} given states",
         unidentifiable=ident_report.unidentifiable,
         involved_in=involved,
     )
