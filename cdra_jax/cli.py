@@ -242,7 +242,23 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         warnings=[*warnings, *report.warnings, *([cond.warning] if cond.warning else [])],
     )
     shown += [w for w in result["warnings"] if w not in shown and w not in report.warnings]
-    print(_calibration_summary(arm, result, model_label, args.data, report.summary()))
+    ident = report.summary()
+    if noise is not None:
+        # Covariance of the identified parameters, Cramer-Rao bound and 95 % intervals, at the
+        # calibrated model (issue: uncertainty with noise weights).
+        from .io import calibrated_arm_from_result
+        from .uncertainty import analyze_uncertainty
+
+        unc = analyze_uncertainty(
+            calibrated_arm_from_result(result, arm),
+            meas.q,
+            noise,
+            meas.measured,
+            estimate=result_errors(result, arm),
+        )
+        result["uncertainty"] = unc.to_dict()
+        ident = ident + "\n" + unc.summary()
+    print(_calibration_summary(arm, result, model_label, args.data, ident))
     path = save_result(result, args.out, force=args.force)
     print(f"wrote {path}")
     for w in shown:
@@ -251,6 +267,23 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         print(f"warning: not converged: {result['message']}", file=sys.stderr)
         return EXIT_NOT_CONVERGED
     return EXIT_OK
+
+
+def result_errors(result: dict, arm) -> Any:
+    """Identified error twists ``(K+1, 6)`` (Eqs. 15-18) from a result dict, frame order."""
+    import numpy as np
+
+    from .arm import TWIST_COMPONENTS
+
+    return np.array(
+        [
+            [
+                np.nan if (v := result["frames"][f]["error_twist"][c]) is None else v
+                for c in TWIST_COMPONENTS
+            ]
+            for f in arm.frame_names
+        ]
+    )
 
 
 def _calibration_summary(arm, r: dict, model_label: str, data: str, ident: str) -> str:
@@ -476,7 +509,13 @@ def _external(module: str) -> Registrar:
     return registrar
 
 
-SUBCOMMANDS: list[Registrar] = [_external("demo"), _register_calibrate, _register_simulate]
+SUBCOMMANDS: list[Registrar] = [
+    _external("demo"),
+    _register_calibrate,
+    _register_simulate,
+    _external("cli_plan"),
+    _external("cli_sweep"),
+]
 """One registrar per subcommand, in the order ``--help`` lists them."""
 
 

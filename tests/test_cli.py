@@ -115,6 +115,15 @@ def test_noise_flags_select_the_weighted_solver(tmp_path, capsys):
         got = r["frames"][name]["error_twist"]
         assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS[:3]) < 0.1
         assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS[3:]) < 1e-3
+    # with a noise model the result carries 95 % intervals, and the base/tool ones are finite
+    # and contain the estimate; upper_arm.wy is not identifiable on its own (elbow axis)
+    unc = r["uncertainty"]
+    assert unc["rank"] == 22 and unc["n_params"] == 24
+    params = unc["parameters"]
+    low, high = params["base.vx"]["interval"]
+    assert low < r["frames"]["base"]["error_twist"]["vx"] < high
+    assert params["upper_arm.wy"]["identifiable"] is False
+    assert params["upper_arm.wy"]["interval"] is None
 
 
 def test_explicit_model_file_gives_the_same_simulation_as_the_default(sim, tmp_path):

@@ -25,8 +25,15 @@ NOTEBOOKS: dict[str, dict[str, object]] = {
         "NOISE_PAD_TO": 40,
         "FAST_COMPILE": True,
     },
+    # Notebook 02 reads CDRA_NOTEBOOK_FAST=1 (set for every notebook below) in its parameters cell.
+    "02_noise_sensitivity.ipynb": {},
 }
 """Notebook file name -> the parameter overrides that make it run in well under a minute."""
+
+EXPECTED_TEXT: dict[str, tuple[str, ...]] = {
+    "02_noise_sensitivity.ipynb": ("predicted", "selected", "not identifiable on its own"),
+}
+"""Text each notebook's printed output must contain when run at reduced size."""
 
 
 def _read(name: str) -> nbformat.NotebookNode:
@@ -70,6 +77,8 @@ def test_notebook_runs(name, monkeypatch):
     # The kernel imports this checkout's cdra_jax, whatever is installed.
     path = os.environ.get("PYTHONPATH", "")
     monkeypatch.setenv("PYTHONPATH", str(ROOT) + (os.pathsep + path if path else ""))
+    monkeypatch.setenv("CDRA_NOTEBOOK_FAST", "1")
+    monkeypatch.setenv("MPLBACKEND", "Agg")
     client = NotebookClient(
         nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}
     )
@@ -82,3 +91,12 @@ def test_notebook_runs(name, monkeypatch):
         if "image/png" in o.get("data", {})
     ]
     assert len(images) >= 3, f"{name}: expected the figures as PNG outputs, got {len(images)}"
+    text = "\n".join(
+        o.get("text", "")
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+        if o.get("output_type") == "stream"
+    )
+    for part in EXPECTED_TEXT.get(name, ()):
+        assert part in text, f"{name}: expected {part!r} in the printed output"
