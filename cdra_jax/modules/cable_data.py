@@ -212,8 +212,8 @@ def check_cable_lengths(
                     problems.append(CableDataProblem(int(i), j, what))
                 else:
                     what += (
-                        f" (with {n} cables for {module.dof} state entries a misfit cannot be "
-                        "pinned to one column)"
+                        f" (with {n} cables for {module.dof} degrees of freedom, one redundant "
+                        "length, a misfit cannot be pinned to one column)"
                     )
                     problems.append(CableDataProblem(int(i), None, what))
             else:

@@ -148,7 +148,8 @@ def _linearise(module: Module, theta: Array, x: Array, lengths: Array):
 def _eliminate(Jp: Array, Jq: Array, r: Array):
     """Project out the state directions pose by pose: reduced ``(m n, 7n)``, ``(m n,)``."""
     G = jnp.einsum("mni,mnj->mij", Jq, Jq)
-    Ginv = small_inv(G)
+    eye = jnp.eye(G.shape[-1], dtype=G.dtype)
+    Ginv = small_inv(G + 1e-12 * jnp.trace(G, axis1=-2, axis2=-1)[:, None, None] * eye)
     Pk = jnp.eye(Jq.shape[1], dtype=Jq.dtype) - jnp.einsum("mni,mij,mkj->mnk", Jq, Ginv, Jq)
     M = jnp.einsum("mnk,mkp->mnp", Pk, Jp)
     y = -jnp.einsum("mnk,mk->mn", Pk, r)
