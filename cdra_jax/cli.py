@@ -419,7 +419,7 @@ def _external(module: str) -> Registrar:
     return registrar
 
 
-SUBCOMMANDS: list[Registrar] = [_register_calibrate, _register_simulate]
+SUBCOMMANDS: list[Registrar] = [_register_calibrate, _register_simulate, _external("diagnosis")]
 """One registrar per subcommand, in the order ``--help`` lists them."""
 
 

@@ -158,9 +158,13 @@ class Effect:
         return f"{self.name} at {location}"
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True)
 class Candidate:
-    """One effect at one location, e.g. ``cable_elasticity`` at ``shoulder``."""
+    """One effect at one location, e.g. ``cable_elasticity`` at ``shoulder``.
+
+    Hashable (effects compare by identity), so a tuple of candidates can be a static argument
+    of a compiled function.
+    """
 
     effect: Effect
     location: str

@@ -35,7 +35,8 @@ from jax import Array
 
 from ..arm import Arm, Module
 from ..modules.cables import cable_lengths, length_jacobian
-from ..modules.statics import gravity_torques, holding_tensions
+from ..modules.statics import distribute_tensions, gravity_loads, gravity_torques, module_floor
+from ..modules.tension import structure_matrix
 from .base import Aux, Effect, Features, ParameterSpec
 from .loads import bending_deflection
 
@@ -159,9 +160,9 @@ class JointCompliance(ModuleEffect):
         return Features(f.state, tw, f.frame_deflection)
 
     def describe(self, location, values):
-        parts = [_interval(values, n, "rad/(N*mm)") for n in values]
-        return f"the {location} module deflects under the gravity load it carries: " + (
-            "compliance " + "; ".join(f"{n} {p}" for n, p in zip(values, parts, strict=True))
+        parts = [f"{n.replace('_', ' ')} {_interval(values, n, 'rad/(N*mm)')}" for n in values]
+        return f"the {location} module deflects under the gravity load it carries: " + "; ".join(
+            parts
         )
 
 
@@ -206,7 +207,10 @@ class CableElasticity(_CableEffect):
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         qi = arm.split_state(q)[i]
-        t = holding_tensions(arm, q, _payload(aux, q))[location].tensions  # (m, n) N
+        # The tensions holding the arm (cdra_jax.modules.statics.holding_tensions), for this
+        # module only: min-norm tensions above the pretension floor balancing its gravity load.
+        load = arm.split_state(gravity_loads(arm, q, _payload(aux, q)))[i]
+        t = distribute_tensions(structure_matrix(mod, qi), -load, module_floor(mod)).tensions
         J = length_jacobian(mod, qi)  # (m, n, dof)
         step = _lstsq(J, t)
         return _module_step_features(arm, q, i, step[..., None])

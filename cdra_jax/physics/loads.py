@@ -80,14 +80,11 @@ def link_tip_loads(arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0) 
 def bending_deflection(arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0) -> Array:
     """Tip deflection ``(delta, theta) (..., 6)`` of link ``j`` per unit compliance ``1/(EI)``.
 
-    See the module docstring; start frame of the link, mm and rad per 1/(N mm^2).
+    See the module docstring; start frame of the link, mm and rad per 1/(N mm^2). The link
+    must have a non-zero length (``LinkBending.missing`` reports it otherwise).
     """
     frames = jnp.asarray(arm.frames)
     L = jnp.linalg.norm(frames[j, :3, 3])
-    if not float(L) > 0.0:
-        raise ValueError(
-            f"link {arm.frame_names[j]!r} has zero length; bending needs a translation in it"
-        )
     F, M, P, a = link_tip_loads(arm, q, j, payload_kg)
     e = frames[j, :3, 3] / L
     e = e.astype(F.dtype)
