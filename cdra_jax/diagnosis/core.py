@@ -44,6 +44,10 @@ EXPLAINED_MIN = 0.9
 """A significant candidate whose refit leaves a significant held-out misfit is still reported
 when it removes at least this fraction of the excess held-out chi-square ``Q - E[Q]``."""
 
+LOCATE_MIN = 0.5
+"""An unattributed misfit is placed where the best (rejected) candidate sits when that
+candidate removes at least this fraction of the excess; otherwise the generic probes place it."""
+
 COS_INDISTINGUISHABLE = 0.98
 REPEAT_TOL = 1e-6
 """Module states that agree within this (rad or mm, per entry) count as a repeated pose."""
@@ -209,49 +213,59 @@ def diagnose(
     groups = stats.repeat_groups(np.asarray(meas.q), REPEAT_TOL)
     lof = stats.lack_of_fit(r, groups, df_resid)
 
-    # 4. candidate table
-    rows: list[CandidateRow] = []
-    projections: dict[Candidate, stats.Projection] = {}
-    gains: dict[Candidate, float] = {}
-    raw_p: dict[Candidate, float] = {}
-    fstat: dict[Candidate, float] = {}
-    for c, why in table:
-        row = CandidateRow(c.name, c.location, len(c.parameters(arm)), skipped=why)
-        rows.append(row)
-        if why is not None:
-            continue
+    # 4. candidate table: one row per (effect, location); its variants are alternatives
+    evals: dict[Candidate, dict] = {}
+    for c in live:
         Jc = J[:, cols[c]]
         proj = stats.project(Jc, UD)
-        projections[c] = proj
         Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid)
-        row.absorbed_fraction = proj.absorbed_fraction
-        row.df = df1
-        row.statistic = Fv if df1 else None
-        raw_p[c] = p
-        fstat[c] = Fv
         A = np.hstack([D, Jc])
-        if proj.df:
-            gains[c] = stats.heldout(r, A, fold).loglik - ho0.loglik
-            row.heldout_gain = gains[c]
-        y_lin, sd_lin = _linear_fit(r, A, 1.0)
+        gain = stats.heldout(r, A, fold).loglik - ho0.loglik if proj.df else None
+        evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A}
+    groups: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
+    for c, why in table:
+        groups.setdefault((c.name, c.location), []).append((c, why))
+    rows: list[CandidateRow] = []
+    chosen: dict[tuple[str, str], Candidate] = {}
+    group_p: dict[tuple[str, str], float] = {}
+    for key, members in groups.items():
+        ok = [c for c, why in members if why is None]
+        if not ok:
+            c0, why0 = members[0]
+            rows.append(CandidateRow(key[0], key[1], len(c0.parameters(arm)), skipped=why0))
+            continue
+        seen = [c for c in ok if evals[c]["df"] > 0] or ok
+        # The variant with the smallest p (ties: the largest gain), Bonferroni over the variants.
+        c = min(seen, key=lambda c: (evals[c]["p"], -(evals[c]["gain"] or -np.inf)))
+        chosen[key] = c
+        e = evals[c]
+        row = CandidateRow(key[0], key[1], len(c.parameters(arm)), variant=c.variant or None)
+        row.variants = [o.variant for o in ok] if len(ok) > 1 else []
+        row.absorbed_fraction = e["proj"].absorbed_fraction
+        row.df = e["df"]
+        row.statistic = e["F"] if e["df"] else None
+        row.heldout_gain = e["gain"]
+        row.p_value_raw = min(1.0, len(seen) * e["p"]) if e["df"] else 1.0
+        y_lin, sd_lin = _linear_fit(r, e["A"], 1.0)
         row.parameters = _estimates(y_lin[n_geo:], sd_lin[n_geo:], c, arm)
-    tested = [c for c in live if projections[c].df > 0]
-    adj = dict(zip(tested, stats.holm(np.array([raw_p[c] for c in tested])), strict=True))
-    by_cand = {(row.effect, row.location): row for row in rows}
-    for c in live:
-        row = by_cand[(c.name, c.location)]
-        row.p_value_raw = raw_p[c]
-        row.p_value = adj.get(c, 1.0)
-        others = [
-            o.label
-            for o in tested
-            if o is not c
-            and projections[c].df
+        rows.append(row)
+        if e["df"]:
+            group_p[key] = row.p_value_raw
+    keys = list(group_p)
+    adj = dict(zip(keys, stats.holm(np.array([group_p[k] for k in keys])), strict=True))
+    by_key = {(row.effect, row.location): row for row in rows}
+    for key, c in chosen.items():
+        row = by_key[key]
+        row.p_value = adj.get(key, 1.0)
+        row.indistinguishable_from = [
+            f"{o[0]}@{o[1]}"
+            for o in keys
+            if o != key
+            and key in group_p
             and stats.indistinguishable(
-                projections[c].basis, projections[o].basis, COS_INDISTINGUISHABLE
+                evals[c]["proj"].basis, evals[chosen[o]]["proj"].basis, COS_INDISTINGUISHABLE
             )
         ]
-        row.indistinguishable_from = others
     p_family = min(adj.values(), default=1.0)
 
     tests_used = {"candidates": p_family}
@@ -270,9 +284,11 @@ def diagnose(
     after = before
     refit_info: dict = {}
     best: Candidate | None = None
-    significant = [c for c in tested if adj[c] < alpha and gains.get(c, -np.inf) > 0]
+    significant = [
+        chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["gain"] or -1.0) > 0
+    ]
     if mismatch and significant:
-        best = max(significant, key=lambda c: gains[c])
+        best = max(significant, key=lambda c: evals[c]["gain"])
         refit_info, parameters, ho1, p_after = _refit(
             best, cols[best], fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale
         )
@@ -285,22 +301,26 @@ def diagnose(
         else:
             effect_name = best.name
             located_in = best.location
-            by_cand[(best.name, best.location)].selected = True
-            by_cand[(best.name, best.location)].parameters = parameters
+            by_key[(best.name, best.location)].selected = True
+            by_key[(best.name, best.location)].parameters = parameters
     elif mismatch:
         effect_name = "unattributed"
 
     probe_rows = []
+    location_source = None if located_in is None else "candidate"
     if effect_name == "unattributed":
         probe_rows, located_in = _locate(probes, cols, r, J, UD, df_resid, alpha)
+        location_source = None if located_in is None else "probe"
         if best is not None:
             parameters = {}
+            if refit_info["explained_fraction"] >= LOCATE_MIN:
+                located_in, location_source = best.location, "partial candidate"
 
     not_ident = list(ABSORBED_EXACTLY) + [
-        f"{c.label}: the frame errors absorb it for this pose set (absorbed fraction "
-        f"{projections[c].absorbed_fraction:.4f})"
-        for c in live
-        if projections[c].df == 0
+        f"{row.label}: the frame errors absorb it for this pose set (absorbed fraction "
+        f"{row.absorbed_fraction:.4f})"
+        for row in rows
+        if row.skipped is None and row.df == 0
     ]
     floor = (
         float(used_noise.position_mm) * float(np.sqrt(np.mean(np.sum(ho0.variance[:, :3], 1)))),
@@ -355,6 +375,7 @@ def diagnose(
             "refit": refit_info or None,
             "probes": probe_rows,
             "best_candidate": None if best is None else best.label,
+            "location_source": location_source,
         },
     )
     diag.report = render_report(diag, best)

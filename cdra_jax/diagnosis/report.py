@@ -66,11 +66,16 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 f"{100 * det['refit']['explained_fraction']:.0f} % of the excess held-out misfit)"
             )
         msg += "."
-        if d.located_in:
+        if d.located_in and det.get("location_source") == "probe":
             top = det["probes"][0]
             msg += (
                 f" It belongs to the {d.located_in} (generic probe: {top['kind']}, "
                 f"p = {_p(top['p_value'])})."
+            )
+        elif d.located_in:
+            msg += (
+                f" It belongs to the {d.located_in}, where the best candidate sits: an effect "
+                "of that kind but of another form than the vocabulary's."
             )
         else:
             msg += " No single location explains it."

@@ -55,6 +55,8 @@ class CandidateRow:
         effect, location: the candidate.
         n_params: its number of physical parameters.
         skipped: why it was not evaluated (missing data), else None.
+        variant: the form of the effect the row reports (e.g. ``"k=2"``: second harmonic),
+            chosen among ``variants`` by the smallest p-value (Bonferroni over them).
         absorbed_fraction: fraction of its most visible direction that the frame errors absorb.
         df: number of directions the poses can see (absorbed fraction < 0.999).
         statistic: F statistic of adding it to the geometric fit.
@@ -70,6 +72,8 @@ class CandidateRow:
     location: str
     n_params: int
     skipped: str | None = None
+    variant: str | None = None
+    variants: list[str] = field(default_factory=list)
     absorbed_fraction: float | None = None
     df: int = 0
     statistic: float | None = None
@@ -90,6 +94,8 @@ class CandidateRow:
             "location": self.location,
             "n_params": self.n_params,
             "skipped": self.skipped,
+            "variant": self.variant,
+            "variants": list(self.variants),
             "absorbed_fraction": _num(self.absorbed_fraction),
             "df": self.df,
             "statistic": _num(self.statistic),
@@ -184,6 +190,8 @@ class Diagnosis:
             notes = []
             if c.selected:
                 notes.append("SELECTED")
+            if c.variant:
+                notes.append(c.variant)
             if c.absorbed_fraction is not None and c.df == 0:
                 notes.append("not identifiable from poses")
             if c.indistinguishable_from:

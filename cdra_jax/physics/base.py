@@ -136,6 +136,9 @@ class Effect:
     name: str = ""
     needs: str = ""
     summary: str = ""
+    variant: str = ""
+    """Which form of the effect (e.g. ``"k=2"`` for the second harmonic); the variants of one
+    effect at one location are alternatives, tried together and Bonferroni-corrected."""
 
     def locations(self, arm: Arm) -> tuple[str, ...]:
         """Module or frame names this effect can sit at."""
@@ -172,6 +175,10 @@ class Candidate:
     @property
     def name(self) -> str:
         return self.effect.name
+
+    @property
+    def variant(self) -> str:
+        return self.effect.variant
 
     @property
     def label(self) -> str:

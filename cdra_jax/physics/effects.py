@@ -232,11 +232,23 @@ def _lstsq(J: Array, b: Array) -> Array:
 
 
 class CableScale(_CableEffect):
-    """Winch drum radius error: cable lengths paid out from home off by a factor ``1 + s``."""
+    """Winch drum radius error: cable lengths off by a factor ``1 + s``.
+
+    Variants: ``"from_home"`` (default), the length paid out from the home state (zero state)
+    is off, ``l(q) -> l(q) + s (l(q) - l(0))``, as for a winch zeroed at home; ``"absolute"``,
+    the whole length is off, ``l(q) -> (1 + s) l(q)``, as for lengths counted from the drum's
+    zero.
+    """
 
     name = "cable_scale"
     needs = "cables"
     summary = "winch/drum radius error: cable lengths off by a factor from home"
+
+    def __init__(self, form: str = "from_home"):
+        if form not in ("from_home", "absolute"):
+            raise ValueError(f"cable_scale form must be 'from_home' or 'absolute', got {form!r}")
+        self.form = form
+        self.variant = form
 
     def parameters(self, arm, location):
         return (
@@ -252,8 +264,9 @@ class CableScale(_CableEffect):
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         qi = arm.split_state(q)[i]
-        home = jnp.zeros_like(qi)
-        dl = cable_lengths(mod, qi) - cable_lengths(mod, home)  # (m, n) mm
+        dl = cable_lengths(mod, qi)  # (m, n) mm
+        if self.form == "from_home":
+            dl = dl - cable_lengths(mod, jnp.zeros_like(qi))
         step = _lstsq(length_jacobian(mod, qi), dl)
         return _module_step_features(arm, q, i, step[..., None])
 
@@ -266,11 +279,24 @@ class CableScale(_CableEffect):
 
 
 class Backlash(ModuleEffect):
-    """A lag ``b`` of each state entry against the approach direction: ``q - approach * b``."""
+    """A lag ``b`` against the approach direction.
+
+    Two forms (variants) for spherical modules, which differ by the left Jacobian of SO(3) at
+    large rotations: ``"state"``, an offset of the recorded state entries, ``q - approach * b``
+    (rotation-vector components); ``"rotation"``, a rotation ``exp(-approach * hat(b))`` of the
+    platform about the module base axes. For revolute and prismatic modules they coincide and
+    only ``"state"`` is used.
+    """
 
     name = "backlash"
     needs = "approach.<module> column"
     summary = "offset whose sign follows the approach direction"
+
+    def __init__(self, form: str = "state"):
+        if form not in ("state", "rotation"):
+            raise ValueError(f"backlash form must be 'state' or 'rotation', got {form!r}")
+        self.form = form
+        self.variant = form
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -288,6 +314,9 @@ class Backlash(ModuleEffect):
         )
 
     def missing(self, arm, location, aux_names):
+        _, mod = self.module(arm, location)
+        if self.form == "rotation" and mod.kind != "spherical":
+            return f"the rotation form is the state form for a {mod.kind} module"
         if f"approach.{location}" not in aux_names:
             return f"no approach.{location} column in the measurements"
         return None
@@ -296,7 +325,7 @@ class Backlash(ModuleEffect):
         i, mod = self.module(arm, location)
         s = -jnp.asarray(aux[f"approach.{location}"], q.dtype)  # (m,)
         step = s[:, None, None] * jnp.eye(mod.dof, dtype=q.dtype)
-        return _module_step_features(arm, q, i, step, spherical_as_twist=False)
+        return _module_step_features(arm, q, i, step, spherical_as_twist=self.form == "rotation")
 
     def describe(self, location, values):
         unit = "rad"
@@ -307,20 +336,25 @@ class Backlash(ModuleEffect):
 
 
 class PeriodicError(ModuleEffect):
-    """A transmission error periodic in each module angle: harmonics ``1 .. H`` of ``q``.
+    """A transmission error periodic in each module angle: ``a sin(k q) + b cos(k q)``.
 
     The periods are those of the joint angle itself (``2 pi / k``): a once-per-revolution error
-    (eccentric drum, pulley or encoder) and its first overtones (ellipticity, ...). The joint
-    ranges of the CDRA (2 rad) span less than one revolution, so higher orders look like noise
-    and the low ones carry the visible, identifiable part.
+    (eccentric drum, pulley or encoder, ``k = 1``) and its overtones (ellipticity ``k = 2``,
+    a 3- to 6-lobed bearing or gear). The vocabulary tries each ``k = 1 .. 6`` as a variant
+    (one harmonic at a time keeps the model from absorbing any smooth joint error; the
+    variants are Bonferroni-corrected). Over the CDRA's 2 rad joint ranges higher orders put
+    too few of a few dozen poses into each period to be told from noise.
     """
 
     name = "periodic_error"
     needs = "joint coordinates"
     summary = "transmission error periodic in a module angle"
 
-    def __init__(self, harmonics: tuple[int, ...] = (1, 2, 3)):
+    def __init__(self, harmonics: tuple[int, ...] = (1,)):
         self.harmonics = tuple(int(h) for h in harmonics)
+        if not self.harmonics or min(self.harmonics) < 1:
+            raise ValueError(f"harmonics must be positive integers, got {harmonics!r}")
+        self.variant = "k=" + ",".join(map(str, self.harmonics))
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -382,7 +416,17 @@ class LinkBending(Effect):
                 "1/(N*mm^2)",
                 0.0,
                 1e-5,
-                "bending compliance 1/(E I) of the link (plausible: E I above 1e5 N mm^2)",
+                "bending compliance 1/(E I) under the transverse forces (distal weights at the "
+                "tip, own weight); plausible: E I above 1e5 N mm^2",
+            ),
+            ParameterSpec(
+                "compliance_moment",
+                "1/(N*mm^2)",
+                0.0,
+                1e-5,
+                "bending compliance 1/(E I) under the tip moment of the distal weights (equal "
+                "to 'compliance' for a uniform beam; fitted apart so that a simpler or richer "
+                "loading of the real link is not mistaken for another effect)",
             ),
         )
 
@@ -402,9 +446,9 @@ class LinkBending(Effect):
 
     def features(self, arm, q, aux, location):
         j = self._index(arm, location)
-        d = bending_deflection(arm, q, j, _payload(aux, q))  # (m, 6)
-        f = Features.zeros(arm, q.shape[0], 1, q.dtype)
-        fd = f.frame_deflection.at[:, j, :, 0].set(d)
+        d = bending_deflection(arm, q, j, _payload(aux, q), split=True)  # (m, 6, 2)
+        f = Features.zeros(arm, q.shape[0], 2, q.dtype)
+        fd = f.frame_deflection.at[:, j].set(d)
         return Features(f.state, f.module_twist, fd)
 
     def describe(self, location, values):
@@ -412,7 +456,8 @@ class LinkBending(Effect):
         ei = f" (E I {_fmt(1 / v)} N*mm^2)" if v > 0 else ""
         return (
             f"the {location} link bends under gravity: compliance 1/(EI) "
-            f"{_interval(values, 'compliance', '1/(N*mm^2)')}{ei}"
+            f"{_interval(values, 'compliance', '1/(N*mm^2)')}{ei}; under the tip moment "
+            f"{_interval(values, 'compliance_moment', '1/(N*mm^2)')}"
         )
 
 
@@ -464,20 +509,31 @@ class ThermalDrift(Effect):
 VOCABULARY: tuple[Effect, ...] = (
     JointCompliance(),
     CableElasticity(),
-    CableScale(),
-    Backlash(),
-    PeriodicError(),
+    CableScale("from_home"),
+    CableScale("absolute"),
+    Backlash("state"),
+    Backlash("rotation"),
+    PeriodicError((1,)),
+    PeriodicError((2,)),
+    PeriodicError((3,)),
+    PeriodicError((4,)),
+    PeriodicError((5,)),
+    PeriodicError((6,)),
     LinkBending(),
     ThermalDrift(),
 )
-"""The seven effects of design.md, in the order of its table."""
+"""The seven effects of design.md (with their variants), in the order of its table."""
 
-EFFECT_NAMES: tuple[str, ...] = tuple(e.name for e in VOCABULARY)
+EFFECT_NAMES: tuple[str, ...] = tuple(dict.fromkeys(e.name for e in VOCABULARY))
 
 
-def effect(name: str) -> Effect:
-    """The vocabulary entry called ``name`` (``ValueError`` naming the known ones otherwise)."""
+def effect(name: str, variant: str | None = None) -> Effect:
+    """The vocabulary entry called ``name`` (its first variant unless ``variant`` is given).
+
+    ``ValueError`` naming the known effects and variants otherwise.
+    """
     for e in VOCABULARY:
-        if e.name == name:
+        if e.name == name and (variant is None or e.variant == variant):
             return e
-    raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+    known = ", ".join(f"{e.name}" + (f" ({e.variant})" if e.variant else "") for e in VOCABULARY)
+    raise ValueError(f"unknown effect {name!r} (variant {variant!r}); known: {known}")

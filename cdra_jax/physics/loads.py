@@ -77,8 +77,13 @@ def link_tip_loads(arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0) 
     return to_start(F), to_start(M), P, jnp.broadcast_to(a, P.shape[:-1])
 
 
-def bending_deflection(arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0) -> Array:
+def bending_deflection(
+    arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0, *, split: bool = False
+) -> Array:
     """Tip deflection ``(delta, theta) (..., 6)`` of link ``j`` per unit compliance ``1/(EI)``.
+
+    With ``split``, ``(..., 6, 2)``: the part of the transverse forces (distal weights and own
+    weight) and the part of the tip moment, whose sum is the deflection.
 
     See the module docstring; start frame of the link, mm and rad per 1/(N mm^2). The link
     must have a non-zero length (``LinkBending.missing`` reports it otherwise).
@@ -91,9 +96,17 @@ def bending_deflection(arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0
     perp = lambda v: v - jnp.einsum("...i,i->...", v, e)[..., None] * e
     Ft, Mt, Pt = perp(F), perp(M), perp(P)
     a = a[..., None]
-    delta = Ft * L**3 / 3.0 + jnp.cross(Mt, e) * L**2 / 2.0 + Pt * a**2 * (3 * L - a) / 6.0
-    theta = jnp.cross(e, Ft) * L**2 / 2.0 + Mt * L + jnp.cross(e, Pt) * a**2 / 2.0
-    return jnp.concatenate([delta, theta], axis=-1)
+    force = jnp.concatenate(
+        [
+            Ft * L**3 / 3.0 + Pt * a**2 * (3 * L - a) / 6.0,
+            jnp.cross(e, Ft) * L**2 / 2.0 + jnp.cross(e, Pt) * a**2 / 2.0,
+        ],
+        axis=-1,
+    )
+    moment = jnp.concatenate([jnp.cross(Mt, e) * L**2 / 2.0, Mt * L], axis=-1)
+    if split:
+        return jnp.stack([force, moment], axis=-1)
+    return force + moment
 
 
 def world_gravity_direction(arm: Arm, q: ArrayLike, j: int) -> Array:
