@@ -127,6 +127,12 @@ def _linear_fit(r: np.ndarray, A: np.ndarray, scale_var: float) -> tuple[np.ndar
     return y, sd
 
 
+def _physical(ho: stats.HeldOut, noise: NoiseModel) -> np.ndarray:
+    """Held-out residuals in mm and rad, ``(m, 6)``: measured minus predicted (first order)."""
+    scale = np.array([float(noise.position_mm)] * 3 + [float(noise.rotation_rad)] * 3)
+    return ho.residual * scale
+
+
 def _errors(ho: stats.HeldOut, noise: NoiseModel, p_value: float | None) -> HeldOutErrors:
     sp, sr = float(noise.position_mm), float(noise.rotation_rad)
     dp = sp * np.sqrt(np.mean(np.sum(ho.residual[:, :3] ** 2, axis=1)))
@@ -284,6 +290,7 @@ def diagnose(
     after = before
     refit_info: dict = {}
     best: Candidate | None = None
+    ho1: stats.HeldOut | None = None
     significant = [
         chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["gain"] or -1.0) > 0
     ]
@@ -378,6 +385,11 @@ def diagnose(
             "location_source": location_source,
         },
     )
+    diag.residuals = {
+        "pose_ids": list(meas.pose_ids),
+        "before": _physical(ho0, used_noise),
+        "after": _physical(ho1, used_noise) if ho1 is not None else _physical(ho0, used_noise),
+    }
     diag.report = render_report(diag, best)
     return diag
 

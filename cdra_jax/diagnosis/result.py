@@ -143,6 +143,7 @@ class Diagnosis:
         report: the plain-words text.
         tests: the detection tests (held-out chi-square, lack of fit, candidate family).
         details: anything else worth keeping (fit, refit, probes, settings).
+        residuals: per-pose held-out residuals for plots (not serialised).
     """
 
     mismatch: bool
@@ -158,6 +159,10 @@ class Diagnosis:
     report: str = ""
     tests: dict[str, Any] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
+    residuals: dict[str, Any] = field(default_factory=dict, repr=False)
+    """Held-out residuals per pose (not in the JSON): ``"before"`` / ``"after"`` ``(m, 6)``
+    arrays ``(position error (mm), rotation error (rad))``, measured minus predicted, world
+    frame, and ``"pose_ids"``."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping with every key of the design's diagnosis contract."""
