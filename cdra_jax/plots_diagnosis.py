@@ -27,14 +27,15 @@ from .io.measurements import Measurements
 
 
 def regressors(arm: Arm, meas: Measurements) -> dict[str, np.ndarray]:
-    """Named per-pose regressors ``(m,)``: state entries, auxiliaries, gravity torque norms."""
+    """Named per-pose regressors ``(m,)``: state entries, auxiliaries that vary (``time_s``,
+    ``payload_kg``, ...), the norm of the gravity torque each module carries."""
     import jax.numpy as jnp
 
     from .modules.statics import gravity_torques
 
     out = {name: np.asarray(meas.q[:, j]) for j, name in enumerate(arm.state_names)}
     for k, v in meas.aux.items():
-        if not k.startswith("approach."):
+        if not k.startswith("approach.") and np.ptp(np.asarray(v)) > 0:  # constant: no axis
             out[k] = np.asarray(v)
     payload = meas.aux.get("payload_kg", np.zeros(meas.m))
     if any(m.mass for m in arm.modules) or np.any(payload):
