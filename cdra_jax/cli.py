@@ -515,6 +515,7 @@ SUBCOMMANDS: list[Registrar] = [
     _register_simulate,
     _external("cli_plan"),
     _external("cli_sweep"),
+    _external("diagnosis"),
 ]
 """One registrar per subcommand, in the order ``--help`` lists them."""
 

@@ -25,13 +25,18 @@ NOTEBOOKS: dict[str, dict[str, object]] = {
         "NOISE_PAD_TO": 40,
         "FAST_COMPILE": True,
     },
-    # Notebook 02 reads CDRA_NOTEBOOK_FAST=1 (set for every notebook below) in its parameters cell.
+    # Notebooks 02 and 03 read CDRA_NOTEBOOK_FAST=1 (set for every notebook) in their parameters cell.
     "02_noise_sensitivity.ipynb": {},
+    "03_missing_physics.ipynb": {},
 }
 """Notebook file name -> the parameter overrides that make it run in well under a minute."""
 
 EXPECTED_TEXT: dict[str, tuple[str, ...]] = {
     "02_noise_sensitivity.ipynb": ("predicted", "selected", "not identifiable on its own"),
+    "03_missing_physics.ipynb": (
+        "Most likely missing physics: the shoulder module's cables stretch",
+        "held-out position error",
+    ),
 }
 """Text each notebook's printed output must contain when run at reduced size."""
 
