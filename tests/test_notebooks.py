@@ -25,7 +25,7 @@ NOTEBOOKS: dict[str, dict[str, object]] = {
         "NOISE_PAD_TO": 40,
         "FAST_COMPILE": True,
     },
-    # Notebooks 02 and 03 read CDRA_NOTEBOOK_FAST=1 (set for every notebook) in their parameters cell.
+    # Notebooks 02 and 03 read CDRA_NOTEBOOK_FAST=1 (always set) in their parameters cell.
     "02_noise_sensitivity.ipynb": {},
     "03_missing_physics.ipynb": {},
 }
