@@ -13,8 +13,12 @@ from . import calibration as calibration
 from . import identifiability as identifiability
 from . import io as io
 from . import lie as lie
+from . import modules as modules
+from . import pose_selection as pose_selection
 from . import reproduction as reproduction
 from . import simulation as simulation
+from . import sweeps as sweeps
+from . import uncertainty as uncertainty
 from .arm import Arm as Arm
 from .arm import Module as Module
 from .arm import apply_frame_errors as apply_frame_errors
@@ -36,5 +40,8 @@ from .io import load_result as load_result
 from .io import save_measurements as save_measurements
 from .io import save_model as save_model
 from .io import save_result as save_result
+from .pose_selection import select_poses as select_poses
+from .sweeps import run_sweep as run_sweep
+from .uncertainty import analyze_uncertainty as analyze_uncertainty
 
 __version__ = importlib.metadata.version("cdra_jax")
