@@ -390,6 +390,18 @@ def _register_simulate(subparsers) -> None:
         help="range of random rotation errors, per component (default 0.05 rad)",
     )
     _add_noise_options(p, "added to the measured tool poses (default: noise-free)")
+    p.add_argument(
+        "--cables",
+        action="store_true",
+        help="write the states of modules with cables as cable lengths <module>.l1 ... .lN",
+    )
+    p.add_argument(
+        "--cable-noise",
+        metavar="MM",
+        type=float,
+        default=0.0,
+        help="std of Gaussian noise on each cable length, with --cables (default 0)",
+    )
     p.add_argument("--out", metavar="D", required=True, help="measurement CSV file to write")
     p.add_argument("--truth", metavar="T.json", help="also write the preset errors as JSON")
     _add_force_option(p)
@@ -455,7 +467,26 @@ def _run_simulate(args: argparse.Namespace) -> int:
             for name, row in zip(arm.frame_names, X, strict=True)
         ),
     ]
-    meas = Measurements.from_arrays(arm, q, measured, comments=comments)
+    cable_lengths = None
+    if args.cables:
+        from .modules.cable_data import simulate_cable_lengths
+
+        if not 0 <= args.cable_noise < float("inf"):
+            raise ValueError(f"--cable-noise must be a non-negative number, got {args.cable_noise}")
+        cable_lengths = {
+            k: np.asarray(v)
+            for k, v in simulate_cable_lengths(
+                jax.random.fold_in(jax.random.PRNGKey(args.seed), 7), arm, q, args.cable_noise
+            ).items()
+        }
+        if not cable_lengths:
+            raise ValueError(f"--cables: no module of model {arm.name!r} has cables")
+        comments.append(
+            f"cable lengths (mm) for {', '.join(cable_lengths)}; noise std {args.cable_noise!r} mm"
+        )
+    meas = Measurements.from_arrays(
+        arm, q, measured, comments=comments, cable_lengths=cable_lengths
+    )
     path = save_measurements(meas, args.out, force=args.force)
     lines = [
         f"model: {arm.name} ({model_label}); {args.poses} poses, seed {args.seed}",

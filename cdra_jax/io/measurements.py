@@ -202,6 +202,7 @@ class Measurements:
         orientation: Orientation = "rotvec",
         aux: Mapping[str, ArrayLike] | None = None,
         comments: Iterable[str] = (),
+        cable_lengths: Mapping[str, ArrayLike] | None = None,
     ) -> Measurements:
         """Measurements from arrays (joint coordinates; measured orientation as ``orientation``).
 
@@ -214,6 +215,9 @@ class Measurements:
                 (``qw >= 0``).
             aux: auxiliary columns, name -> ``(m,)``.
             comments: comment lines (without ``#``).
+            cable_lengths: ``{module: (m, n)}`` measured cable lengths (mm); those modules are
+                written as ``<module>.l1 ... <module>.lN`` columns instead of joint coordinates
+                (``q`` is kept as the states the lengths were measured at).
         """
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != arm.dof:
@@ -231,7 +235,25 @@ class Measurements:
         if not np.all(np.isfinite(q)):
             raise ValueError("q contains NaN or inf")
         values: dict[str, np.ndarray] = {n: q[:, j].copy() for j, n in enumerate(arm.state_names)}
-        columns = [POSE_COLUMN, *arm.state_names]
+        columns = [POSE_COLUMN]
+        cables = dict(cable_lengths or {})
+        for mod in arm.modules:
+            if mod.name not in cables:
+                columns += mod.state_names
+                continue
+            L = np.asarray(cables.pop(mod.name), dtype=float)
+            if L.shape != (m, mod.n_cables) or mod.n_cables == 0:
+                raise ValueError(
+                    f"cable_lengths[{mod.name!r}]: expected shape ({m}, {mod.n_cables}) "
+                    f"(module cables in the model), got {L.shape}"
+                )
+            for n in mod.state_names:
+                del values[n]
+            for j in range(mod.n_cables):
+                values[f"{mod.name}.l{j + 1}"] = L[:, j].copy()
+                columns.append(f"{mod.name}.l{j + 1}")
+        if cables:
+            raise ValueError(f"cable_lengths: unknown modules {sorted(cables)}")
         T = None
         if measured is not None:
             T = np.asarray(measured, dtype=float)
