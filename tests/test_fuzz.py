@@ -21,6 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import tomli_w
 from _robust_data import M, problem
 from hypothesis import HealthCheck, assume, given, settings
@@ -481,3 +482,12 @@ def test_solvers_never_report_success_with_nan(T):
         elif code == int(RESULTS.successful._value):
             assert frames_ok and np.all(np.isfinite(np.asarray(sol.errors)))
         assert frames_ok or code != int(RESULTS.successful._value)
+
+
+def test_huge_rotation_vector_is_a_named_error():
+    # Found by the fuzzer in CI: a rotation vector of 1.9e152 rad gave a non-orthonormal matrix.
+    header = ",".join(COLUMNS)
+    huge = "1.8831635608913214e+152"
+    row = ["p0" if c == "pose" else huge if c == "measured.rx" else "0.1" for c in COLUMNS]
+    with pytest.raises(MeasurementFileError, match=r"d\.csv.*measured\.rx.*above the limit"):
+        loads_measurements(header + "\n" + ",".join(row) + "\n", ARM, source="d.csv")

@@ -59,6 +59,10 @@ QUATERNION_COLUMNS = ("measured.qw", "measured.qx", "measured.qy", "measured.qz"
 AUX_COLUMNS = ("time_s", "payload_kg", "temperature_c")
 """Auxiliary columns besides ``approach.<module>``."""
 QUATERNION_TOL = 1e-6
+#: Largest accepted rotation-vector angle (rad).  Far beyond any rotation vector in radians
+#: (even one written in degrees stays below ~312), and small enough that ``sin``/``cos`` of it
+#: keep full double precision, so the rotation built from it is orthonormal to 1e-12.
+ROTVEC_MAX_ANGLE = 1e3
 """A measured quaternion is accepted (and normalised) when ``| |q| - 1 | <= QUATERNION_TOL``."""
 _ORTHO_TOL = 1e-6
 
@@ -546,6 +550,19 @@ def loads_measurements(
         xyz = np.stack([values[c] for c in POSITION_COLUMNS], axis=-1)
         if layout.orientation == "rotvec":
             rv = np.stack([values[c] for c in ROTVEC_COLUMNS], axis=-1)
+            angle = np.linalg.norm(rv, axis=-1)
+            bad = np.flatnonzero(~(angle <= ROTVEC_MAX_ANGLE))
+            if bad.size:
+                k = int(bad[0])
+                j = int(np.argmax(np.abs(rv[k])))
+                raise ctx.error(
+                    f"rotation vector (measured.rx, .ry, .rz) = {tuple(rv[k].tolist())} has an "
+                    f"angle of {angle[k]:.4g} rad, above the limit {ROTVEC_MAX_ANGLE:g} rad: "
+                    "not a rotation vector in radians (a position or a value in another unit "
+                    "in this column?)",
+                    column=ROTVEC_COLUMNS[j],
+                    row=k,
+                )
             measured = np.asarray(_poses_from_rotvec(xyz, rv), dtype=float)
         else:
             quat = np.stack([values[c] for c in QUATERNION_COLUMNS], axis=-1)

@@ -54,6 +54,9 @@ class ModelFileError(ValueError):
     """A model file is malformed; the message names the file and the entry."""
 
 
+_ROTVEC_MAX_ANGLE = 1e3  # rad; as io.measurements.ROTVEC_MAX_ANGLE
+
+
 def _err(source: str, where: str, what: str) -> ModelFileError:
     return ModelFileError(f"{source}: {where}: {what}")
 
@@ -98,6 +101,13 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
         raise _err(source, where, "needs 'xyz' (mm) and 'rotvec' (rad), or 'matrix' (4x4)")
     xyz = _vector(source, f"{where}.xyz", spec["xyz"], 3)
     rv = _vector(source, f"{where}.rotvec", spec["rotvec"], 3)
+    if not np.linalg.norm(rv) <= _ROTVEC_MAX_ANGLE:
+        raise _err(
+            source,
+            f"{where}.rotvec",
+            f"angle {np.linalg.norm(rv):.4g} rad is above {_ROTVEC_MAX_ANGLE:g} rad: "
+            "not a rotation vector in radians",
+        )
     return np.asarray(_from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
 
 
