@@ -13,6 +13,7 @@ with its own parser (``python -m cdra_jax.demo --help``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
@@ -199,61 +200,65 @@ def run(args: argparse.Namespace) -> int:
         print(text, flush=True)
         report.append(text)
 
+    @contextlib.contextmanager
+    def timed(name: str):
+        """Record the wall and CPU seconds of the ``with`` body under ``name``."""
+        t, c = time.perf_counter(), time.process_time()
+        yield
+        timings[name], cpu[name] = time.perf_counter() - t, time.process_time() - c
+
     emit(
         f"cdra-jax demo: the paper's evidence regenerated on the default model {arm.name!r} "
         f"({'full' if args.full else 'small'} sizes, seed {seed}); output folder: {out}"
     )
 
-    t, c = time.perf_counter(), time.process_time()
-    table = reproduction.table_one(
-        arm,
-        m=sizes.table_m,
-        m_verify=sizes.table_m_verify,
-        seed=seed,
-        fast_compile=sizes.fast_compile,
-    )
-    timings["table_1"], cpu["table_1"] = time.perf_counter() - t, time.process_time() - c
+    with timed("table_1"):
+        table = reproduction.table_one(
+            arm,
+            m=sizes.table_m,
+            m_verify=sizes.table_m_verify,
+            seed=seed,
+            fast_compile=sizes.fast_compile,
+        )
     emit("")
     emit(reproduction.format_table_one(table))
 
-    t, c = time.perf_counter(), time.process_time()
-    conv = reproduction.convergence_study(
-        arm,
-        trials=sizes.convergence_trials,
-        m=sizes.convergence_m,
-        seed=seed,
-        fast_compile=sizes.fast_compile,
-    )
-    timings["fig_5"], cpu["fig_5"] = time.perf_counter() - t, time.process_time() - c
+    with timed("fig_5"):
+        conv = reproduction.convergence_study(
+            arm,
+            trials=sizes.convergence_trials,
+            m=sizes.convergence_m,
+            seed=seed,
+            fast_compile=sizes.fast_compile,
+        )
     emit("")
     emit(reproduction.format_convergence(conv))
 
-    t, c = time.perf_counter(), time.process_time()
-    noise = reproduction.noise_study(
-        arm,
-        m_values=sizes.noise_m_values,
-        trials=sizes.noise_trials,
-        m_verify=sizes.noise_m_verify,
-        pad_to=sizes.noise_pad_to,
-        seed=seed,
-        fast_compile=sizes.fast_compile,
-        progress=lambda m: print(
-            f"  Fig. 7: m = {m} done ({time.perf_counter() - t:.0f} s)", file=sys.stderr
-        ),
-    )
-    timings["fig_7"], cpu["fig_7"] = time.perf_counter() - t, time.process_time() - c
+    with timed("fig_7"):
+        t = time.perf_counter()
+        noise = reproduction.noise_study(
+            arm,
+            m_values=sizes.noise_m_values,
+            trials=sizes.noise_trials,
+            m_verify=sizes.noise_m_verify,
+            pad_to=sizes.noise_pad_to,
+            seed=seed,
+            fast_compile=sizes.fast_compile,
+            progress=lambda m: print(
+                f"  Fig. 7: m = {m} done ({time.perf_counter() - t:.0f} s)", file=sys.stderr
+            ),
+        )
     emit("")
     emit(reproduction.format_noise_study(noise))
 
-    t, c = time.perf_counter(), time.process_time()
-    figures = {
-        "fig5_convergence.png": plots.convergence_figure(conv),
-        "fig7_noise.png": plots.noise_figure(noise),
-        "fig7_parameter_error.png": plots.parameter_error_figure(noise),
-    }
-    for name, fig in figures.items():
-        fig.savefig(out / name, dpi=120)
-    timings["figures"], cpu["figures"] = time.perf_counter() - t, time.process_time() - c
+    with timed("figures"):
+        figures = {
+            "fig5_convergence.png": plots.convergence_figure(conv),
+            "fig7_noise.png": plots.noise_figure(noise),
+            "fig7_parameter_error.png": plots.parameter_error_figure(noise),
+        }
+        for name, fig in figures.items():
+            fig.savefig(out / name, dpi=120)
     timings["total"], cpu["total"] = time.perf_counter() - t_start, time.process_time() - c_start
 
     emit("")

@@ -453,20 +453,13 @@ def analyze_uncertainty(
 
 
 def uncertainty_dict(
-    arm: Arm,
-    q: ArrayLike,
-    noise: NoiseModel,
-    measured: ArrayLike | None = None,
-    *,
-    estimate: ArrayLike | None = None,
-    q_eval: ArrayLike | None = None,
-    confidence: float = DEFAULT_CONFIDENCE,
+    arm: Arm, q: ArrayLike, noise: NoiseModel, measured: ArrayLike | None = None, **options
 ) -> dict:
     """The ``uncertainty`` entry of a result JSON (see :meth:`UncertaintyReport.to_dict`).
 
-    For a finished calibration call it with the calibrated arm, the measured states and poses,
-    the noise model used and ``estimate=solution.errors``.
+    The arguments and keyword ``options`` (``estimate``, ``q_eval``, ``confidence``, ``rcond``)
+    are those of :func:`analyze_uncertainty`. For a finished calibration call it with the
+    calibrated arm, the measured states and poses, the noise model used and
+    ``estimate=solution.errors``.
     """
-    return analyze_uncertainty(
-        arm, q, noise, measured, estimate=estimate, q_eval=q_eval, confidence=confidence
-    ).to_dict()
+    return analyze_uncertainty(arm, q, noise, measured, **options).to_dict()
