@@ -105,7 +105,9 @@ def calibrate_paper(
     dRs = dRs.at[k].set(dR)
     ok = ok & jnp.isfinite(dp) & jnp.isfinite(dR)
     result = RESULTS.where(
-        ok, RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached), RESULTS.nonfinite
+        ok,
+        RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached),
+        RESULTS.nonfinite,
     )
     errors = lie.se3_log(frames @ lie.inverse(jnp.asarray(arm.frames, dtype)))
     sol = CalibrationSolution(
