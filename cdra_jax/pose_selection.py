@@ -48,10 +48,10 @@ from jax.typing import ArrayLike
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
-from .simulation import StateSampler, sample_states
+from .simulation import StateSampler, sample_poses
 
-CRITERIA: tuple[str, ...] = ("d-opt", "o1")
-DEFAULT_CRITERION = "d-opt"
+CRITERIA: tuple[str, ...] = ("i-opt", "d-opt", "o1")
+DEFAULT_CRITERION = "i-opt"
 DEFAULT_POOL_SIZE = 2000
 _RIDGE = 1e-9
 
@@ -64,11 +64,14 @@ class PoseSelection:
         states: selected module states ``(m, dof)`` in selection order.
         indices: their rows in ``pool`` ``(m,)``.
         pool: the candidate states ``(N, dof)``.
-        criterion: ``"d-opt"`` or ``"o1"``.
+        criterion: ``"i-opt"``, ``"d-opt"`` or ``"o1"``.
         log_det: ``log det M(S)`` of the selected set (no ridge), whitened for ``"d-opt"``,
             unweighted for ``"o1"``.
         log_det_greedy: the same after the greedy phase, before the exchanges.
         o1: the observability index ``exp(log_det / (2 r)) / sqrt(m)`` of the same matrix.
+        prediction_rms: predicted ``sqrt(E[dp^2])`` (mm, first order) of a calibration from the
+            selected poses at the reference states (``sqrt(tr(Q M^-1))``, the I-criterion);
+            ``nan`` without a noise model.
         rank: dimension ``r`` of the identifiable subspace of the pool.
         n_exchanges: swaps made by the exchange pass.
     """
@@ -80,6 +83,7 @@ class PoseSelection:
     log_det: float
     log_det_greedy: float
     o1: float
+    prediction_rms: float
     rank: int
     n_exchanges: int
 
@@ -195,7 +199,110 @@ def _exchange(B: Array, idx: Array, eps: Array, max_swaps: int, tol: float) -> t
     return idx, n
 
 
+def _prediction_weight(reference_blocks: Array, basis: Array, position_mm: Array) -> Array:
+    """``Q = s_p^2 W^T mean_h(A_h[:3]^T A_h[:3]) W (r, r)``: weight of the I-criterion.
+
+    The whitened position rows of a block are ``[I, -hat(p)] D / s_p`` (Eq. 7 whitening), so
+    ``s_p A_h[:3] W`` maps the identifiable coordinates to the tool position error at ``h`` (mm).
+    """
+    P = jnp.einsum("hai,ir->har", reference_blocks[..., :3, :], basis) * position_mm
+    return jnp.einsum("har,has->rs", P, P) / reference_blocks.shape[0]
+
+
+def _greedy_i(B: Array, Q: Array, m: int, eps: Array) -> Array:
+    """Greedy forward selection of ``m`` candidates minimising ``tr(Q (M + eps I)^-1)``.
+
+    Adding ``B_j`` lowers it by ``tr((I + B_j Y_j)^-1 Y_j^T Q Y_j)``, ``Y_j = M^-1 B_j^T``
+    (Sherman-Morrison-Woodbury).
+    """
+    N, k, r = B.shape
+    eye_k = jnp.eye(k, dtype=B.dtype)
+
+    def body(t, carry):
+        M, taken, idx = carry
+        Y = _spd_solve_blocks(M, B)  # (N, r, k)
+        S = eye_k + jnp.einsum("nir,nrj->nij", B, Y)
+        V = jnp.einsum("nri,rs,nsj->nij", Y, Q, Y)
+        gain = jnp.trace(jnp.linalg.solve(S, V), axis1=-2, axis2=-1)
+        gain = jnp.where(taken | ~jnp.isfinite(gain), -jnp.inf, gain)
+        j = jnp.argmax(gain)
+        return M + B[j].T @ B[j], taken.at[j].set(True), idx.at[t].set(j.astype(idx.dtype))
+
+    M0 = eps * jnp.eye(r, dtype=B.dtype)
+    init = (M0, jnp.zeros(N, bool), jnp.zeros(m, jnp.int32))
+    _, _, idx = jax.lax.fori_loop(0, m, body, init)
+    return idx
+
+
+def _spd_solve_blocks(M: Array, B: Array) -> Array:
+    """``M^-1 B_j^T`` for every block: ``(r, r) SPD, (N, k, r) -> (N, r, k)``."""
+    L = jnp.linalg.cholesky(M)
+    Z = _chol_solve_blocks(L, B)
+    return jax.scipy.linalg.solve_triangular(L.T, Z, lower=False)
+
+
+def _exchange_i(
+    B: Array, Q: Array, idx: Array, eps: Array, max_swaps: int, tol: float
+) -> tuple[Array, Array]:
+    """Fedorov exchange for the I-criterion: best single swap while it lowers ``tr(Q M^-1)``
+    by more than ``tol`` times its value.
+
+    Swapping selected ``i`` for ``j`` is the update ``M + U^T C U`` with ``U = [B_j; B_i]``,
+    ``C = diag(I, -I)``; it lowers the criterion by ``tr(K^-1 Y^T Q Y)``, ``Y = M^-1 U^T``,
+    ``K = C + U Y``.
+    """
+    N, k, r = B.shape
+    m = idx.shape[0]
+    C = jnp.diag(jnp.concatenate([jnp.ones(k), -jnp.ones(k)])).astype(B.dtype)
+
+    def best_swap(idx):
+        Bs = B[idx]
+        M = eps * jnp.eye(r, dtype=B.dtype) + jnp.einsum("mkr,mks->rs", Bs, Bs)
+        Y = _spd_solve_blocks(M, B)  # (N, r, k): M^-1 B_j^T
+        QY = jnp.einsum("rs,nsk->nrk", Q, Y)
+        Ys = Y[idx]
+        Pjj = jnp.einsum("nir,nrj->nij", B, Y)  # B_j M^-1 B_j^T
+        Pij = jnp.einsum("mir,nrj->mnij", Bs, Y)  # B_i M^-1 B_j^T
+        Pii = Pjj[idx]
+        Vjj = jnp.einsum("nri,nrj->nij", Y, QY)  # Y_j^T Q Y_j
+        Vij = jnp.einsum("mri,nrj->mnij", Ys, QY)  # Y_i^T Q Y_j
+        Vii = Vjj[idx]
+
+        def assemble(jj, ij, ii):  # [[jj, ji], [ij, ii]] over (m, N)
+            top = jnp.concatenate([jnp.broadcast_to(jj[None], (m, N, k, k)), _t(ij)], -1)
+            bottom = jnp.concatenate([ij, jnp.broadcast_to(ii[:, None], (m, N, k, k))], -1)
+            return jnp.concatenate([top, bottom], -2)
+
+        K = C + assemble(Pjj, Pij, Pii)
+        V = assemble(Vjj, Vij, Vii)
+        gain = jnp.trace(jnp.linalg.solve(K, V), axis1=-2, axis2=-1)
+        taken = jnp.zeros(N, bool).at[idx].set(True)
+        gain = jnp.where(taken[None, :] | ~jnp.isfinite(gain), -jnp.inf, gain)
+        flat = jnp.argmax(gain)
+        phi = jnp.trace(Q @ jnp.linalg.solve(M, jnp.eye(r, dtype=B.dtype)))
+        return gain.reshape(-1)[flat], flat // N, flat % N, phi
+
+    def cond(carry):
+        _, n, go = carry
+        return go & (n < max_swaps)
+
+    def body(carry):
+        idx, n, _ = carry
+        gain, i, j, phi = best_swap(idx)
+        go = gain > tol * phi
+        idx = jnp.where(go, idx.at[i].set(j.astype(idx.dtype)), idx)
+        return idx, n + go.astype(n.dtype), go
+
+    idx, n, _ = jax.lax.while_loop(cond, body, (idx, jnp.asarray(0), jnp.asarray(True)))
+    return idx, n
+
+
+def _t(x: Array) -> Array:
+    return jnp.swapaxes(x, -1, -2)
+
+
 def _select(B: Array, m: int, eps: Array, exchange: bool, max_swaps: int, tol: float):
+    """D-criterion: greedy, then (optionally) Fedorov exchange."""
     idx = _greedy(B, m, eps)
     if not exchange:
         return idx, idx, jnp.asarray(0)
@@ -203,7 +310,49 @@ def _select(B: Array, m: int, eps: Array, exchange: bool, max_swaps: int, tol: f
     return idx, idx2, n
 
 
+def _i_value(B: Array, Q: Array, idx: Array, eps: Array) -> Array:
+    """``tr(Q (M(S) + eps I)^-1)`` of the set ``idx``."""
+    Bs = B[idx]
+    M = eps * jnp.eye(B.shape[-1], dtype=B.dtype) + jnp.einsum("mkr,mks->rs", Bs, Bs)
+    return jnp.trace(jnp.linalg.solve(M, Q))
+
+
+def _select_i(B: Array, Q: Array, m: int, eps: Array, exchange: bool, max_swaps: int, tol: float):
+    """I-criterion: two starts (I-greedy; the D-optimal greedy + exchange set), each improved
+    by I-exchanges; the better end point wins. Returns (greedy set, final set, swaps)."""
+    idx_g = _greedy_i(B, Q, m, eps)
+    if not exchange:
+        return idx_g, idx_g, jnp.asarray(0)
+    idx_d = _select(B, m, eps, True, max_swaps, 1e-10)[1]
+    idx_1, n_1 = _exchange_i(B, Q, idx_g, eps, max_swaps, tol)
+    idx_2, n_2 = _exchange_i(B, Q, idx_d, eps, max_swaps, tol)
+    first = _i_value(B, Q, idx_1, eps) <= _i_value(B, Q, idx_2, eps)
+    return idx_g, jnp.where(first, idx_1, idx_2), jnp.where(first, n_1, n_2)
+
+
 _select_jit = jax.jit(_select, static_argnums=(1, 3, 4, 5))
+_select_i_jit = jax.jit(_select_i, static_argnums=(2, 4, 5, 6))
+
+
+def _check_pool(arm: Arm, pool: ArrayLike, name: str = "pool") -> np.ndarray:
+    pool = np.asarray(pool, dtype=float)
+    if pool.ndim != 2 or pool.shape[1] != arm.dof:
+        raise ValueError(
+            f"{name} must have shape (N, {arm.dof}) with columns {arm.state_names}, "
+            f"got {pool.shape}"
+        )
+    return pool
+
+
+def _reference_weight(
+    arm: Arm, reference: np.ndarray, noise: NoiseModel, basis: np.ndarray
+) -> Array:
+    dtype = jnp.asarray(arm.frames).dtype
+    blocks = information_blocks(arm, reference, noise)
+    pos = jnp.asarray(noise.position_mm, dtype)
+    if pos.ndim:
+        raise ValueError("criterion 'i-opt' needs a scalar noise.position_mm (one device)")
+    return _prediction_weight(blocks, jnp.asarray(basis, dtype), pos)
 
 
 def select_from_pool(
@@ -213,6 +362,7 @@ def select_from_pool(
     noise: NoiseModel | None = None,
     *,
     criterion: str = DEFAULT_CRITERION,
+    reference: ArrayLike | None = None,
     exchange: bool = True,
     max_exchanges: int | None = None,
     rcond: float | None = None,
@@ -221,45 +371,58 @@ def select_from_pool(
 
     Args:
         arm: model to linearise at (the nominal arm).
-        pool: candidate module states, e.g. from :func:`cdra_jax.simulation.sample_states` or a
-            tension-closure sampler.
+        pool: candidate module states, e.g. from :func:`cdra_jax.simulation.sample_poses`
+            (tension-feasible where the model has cables).
         m: number of poses to select (``<= N``).
-        noise: the measuring device's noise; required for ``"d-opt"``, unused for ``"o1"``.
-        criterion: ``"d-opt"`` (default) or ``"o1"``.
-        exchange: run the Fedorov exchange pass after the greedy selection.
+        noise: the measuring device's noise; required for ``"i-opt"`` and ``"d-opt"``, unused
+            for ``"o1"``.
+        criterion: ``"i-opt"`` (default), ``"d-opt"`` or ``"o1"``.
+        reference: states ``(K, dof)`` where the calibrated arm will be used (the workspace
+            sample the I-criterion averages over and ``prediction_rms`` is evaluated at);
+            default: the pool.
+        exchange: run the exchange pass after the greedy selection.
         max_exchanges: cap on swaps (default ``10 m``).
         rcond: relative singular-value cut-off for the identifiable subspace.
 
     Raises:
-        ValueError: unknown criterion, no noise model for ``"d-opt"``, ``m`` out of range or a
-            pool of the wrong shape.
+        ValueError: unknown criterion, no noise model for ``"i-opt"`` / ``"d-opt"``, ``m`` out
+            of range or a pool / reference of the wrong shape.
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
-    if criterion == "d-opt" and noise is None:
+    if criterion != "o1" and noise is None:
         raise ValueError(
-            "criterion 'd-opt' weights the poses by the measurement noise: pass "
+            f"criterion {criterion!r} weights the poses by the measurement noise: pass "
             "noise=NoiseModel(position_mm, rotation_rad) (or use criterion='o1')"
         )
-    pool = np.asarray(pool, dtype=float)
-    if pool.ndim != 2 or pool.shape[1] != arm.dof:
-        raise ValueError(
-            f"pool must have shape (N, {arm.dof}) with columns {arm.state_names}, got {pool.shape}"
-        )
+    pool = _check_pool(arm, pool)
+    reference = pool if reference is None else _check_pool(arm, reference, "reference")
     if not 1 <= m <= pool.shape[0]:
         raise ValueError(f"cannot select m = {m} poses from a pool of {pool.shape[0]}")
     dtype = jnp.asarray(arm.frames).dtype
-    A = information_blocks(arm, pool, noise if criterion == "d-opt" else None)
+    A = information_blocks(arm, pool, None if criterion == "o1" else noise)
     W = identifiable_basis(A, rcond)
     r = W.shape[1]
     B = jnp.einsum("nai,ir->nar", A, jnp.asarray(W, dtype))
     eps = _RIDGE * jnp.sum(B * B) / (pool.shape[0] * r)
     max_swaps = 10 * m if max_exchanges is None else int(max_exchanges)
-    tol = 1e-10
-    idx_greedy, idx, n_swaps = _select_jit(B, int(m), eps, bool(exchange), max_swaps, tol)
+    if criterion == "i-opt":
+        Q = _reference_weight(arm, reference, noise, W)
+        idx_greedy, idx, n_swaps = _select_i_jit(
+            B, Q, int(m), eps, bool(exchange), max_swaps, 1e-10
+        )
+    else:
+        idx_greedy, idx, n_swaps = _select_jit(B, int(m), eps, bool(exchange), max_swaps, 1e-10)
     idx = np.asarray(idx)
     log_det = float(log_det_information(A[idx], W))
     log_det_greedy = float(log_det_information(A[np.asarray(idx_greedy)], W))
+    rms = float("nan")
+    if noise is not None:
+        Aw = A if criterion != "o1" else information_blocks(arm, pool, noise)
+        Ww = W if criterion != "o1" else identifiable_basis(Aw, rcond)
+        Bw = jnp.einsum("nai,ir->nar", Aw, jnp.asarray(Ww, dtype))
+        Qw = _reference_weight(arm, reference, noise, Ww)
+        rms = float(jnp.sqrt(_i_value(Bw, Qw, jnp.asarray(idx), 0.0)))
     return PoseSelection(
         states=pool[idx],
         indices=idx,
@@ -268,6 +431,7 @@ def select_from_pool(
         log_det=log_det,
         log_det_greedy=log_det_greedy,
         o1=float(np.exp(log_det / (2 * r)) / np.sqrt(m)) if r else 0.0,
+        prediction_rms=rms if np.isfinite(rms) or noise is None else float("inf"),
         rank=r,
         n_exchanges=int(n_swaps),
     )
@@ -282,25 +446,113 @@ def select_poses(
     pool_size: int = DEFAULT_POOL_SIZE,
     sampler: StateSampler | None = None,
     criterion: str = DEFAULT_CRITERION,
+    reference: ArrayLike | None = None,
     exchange: bool = True,
     max_exchanges: int | None = None,
     rcond: float | None = None,
 ) -> PoseSelection:
-    """Draw a pool of ``pool_size`` states with ``sampler(key, arm, pool_size)`` (default
-    :func:`cdra_jax.simulation.sample_states`) and select ``m`` of them
-    (:func:`select_from_pool`).
+    """Draw a pool of ``pool_size`` states with ``sampler(key, arm, pool_size)`` and select
+    ``m`` of them (:func:`select_from_pool`).
+
+    The default sampler is :func:`cdra_jax.simulation.sample_poses`: uniform within the joint
+    limits, and with tension closure in every module where the model has cables (poses the arm
+    can hold).
     """
     if pool_size < m:
         raise ValueError(f"pool_size ({pool_size}) must be at least m ({m})")
     key = jax.random.PRNGKey(0) if key is None else key
-    pool = (sampler or sample_states)(key, arm, int(pool_size))
+    pool = (sampler or sample_poses)(key, arm, int(pool_size))
     return select_from_pool(
         arm,
         np.asarray(pool),
         m,
         noise,
         criterion=criterion,
+        reference=reference,
         exchange=exchange,
         max_exchanges=max_exchanges,
         rcond=rcond,
+    )
+
+
+@dataclass(frozen=True)
+class PredictionBound:
+    """Result of :func:`prediction_bound` (first-order, position error in mm).
+
+    Attributes:
+        lower: no ``m`` poses from the pool give a smaller predicted ``sqrt(E[dp^2])`` at the
+            reference states than this (mm).
+        approximate: ``sqrt(tr(Q M(w)^-1) / m)`` of the best weighted design found (mm); the
+            optimum of the relaxation lies in ``[lower, approximate]``.
+        weights: design weights over the pool ``(N,)``, summing to 1.
+        support: number of pool states with weight above ``1e-3``.
+        iterations: multiplicative-algorithm steps run.
+    """
+
+    lower: float
+    approximate: float
+    weights: np.ndarray
+    support: int
+    iterations: int
+
+
+@eqx.filter_jit
+def _approximate_i_design(F: Array, Q: Array, iterations: int):
+    """Multiplicative algorithm for ``min_w tr(Q M(w)^-1)``, ``M(w) = sum_i w_i F_i``."""
+    N = F.shape[0]
+
+    def sensitivities(w):
+        Mi = jnp.linalg.inv(jnp.einsum("n,nrs->rs", w, F))
+        phi = jnp.trace(Q @ Mi)
+        return jnp.einsum("nrs,rs->n", F, Mi @ Q @ Mi), phi
+
+    def body(_, w):
+        d, phi = sensitivities(w)
+        w = w * jnp.sqrt(d / phi)
+        return w / jnp.sum(w)
+
+    w = jax.lax.fori_loop(0, iterations, body, jnp.full(N, 1.0 / N, F.dtype))
+    d, phi = sensitivities(w)
+    return w, phi, jnp.max(d)
+
+
+def prediction_bound(
+    arm: Arm,
+    pool: ArrayLike,
+    m: int,
+    noise: NoiseModel,
+    *,
+    reference: ArrayLike | None = None,
+    iterations: int = 2000,
+    rcond: float | None = None,
+) -> PredictionBound:
+    """Lower bound on the predicted held-out error of *any* ``m`` poses taken from ``pool``.
+
+    The I-criterion ``phi(S) = tr(Q M(S)^-1)`` (module docstring) of an ``m``-pose set equals
+    ``phi(w_S) / m`` for the design ``w_S`` that puts weight ``1/m`` on each of its poses, so it
+    is at least ``phi* / m`` with ``phi*`` the optimum over all weights on the pool (the
+    approximate-design relaxation, a convex problem). The multiplicative algorithm
+    (``w_i <- w_i sqrt(d_i / phi)``, ``d_i = tr(F_i M^-1 Q M^-1)``) approaches it, and
+    convexity gives the certificate ``phi* >= phi(w)^2 / max_i d_i`` at every ``w`` (the
+    tangent plane of the convex ``phi`` at ``t M(w)``, optimised over ``t``). Returned as RMS
+    position errors (mm): ``lower = sqrt(phi(w)^2 / max_i d_i / m)``.
+    """
+    pool = _check_pool(arm, pool)
+    reference = pool if reference is None else _check_pool(arm, reference, "reference")
+    if m < 1:
+        raise ValueError(f"m must be positive, got {m}")
+    dtype = jnp.asarray(arm.frames).dtype
+    A = information_blocks(arm, pool, noise)
+    W = identifiable_basis(A, rcond)
+    B = jnp.einsum("nai,ir->nar", A, jnp.asarray(W, dtype))
+    Q = _reference_weight(arm, reference, noise, W)
+    F = jnp.einsum("nar,nas->nrs", B, B)
+    w, phi, dmax = _approximate_i_design(F, Q, int(iterations))
+    w = np.asarray(w)
+    return PredictionBound(
+        lower=float(np.sqrt(float(phi) ** 2 / float(dmax) / m)),
+        approximate=float(np.sqrt(float(phi) / m)),
+        weights=w,
+        support=int(np.sum(w > 1e-3)),
+        iterations=int(iterations),
     )
