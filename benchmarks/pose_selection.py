@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     ap.add_argument("--m-min", type=int, default=5)
     ap.add_argument("--m-max", type=int, default=15)
     ap.add_argument("--target", type=int, default=15, help="random pose count to match")
-    ap.add_argument("--pool", type=int, default=2000)
+    ap.add_argument("--pool", type=int, default=5000)
     ap.add_argument("--verify", type=int, default=100)
     ap.add_argument("--noise-pos", type=float, default=0.08)
     ap.add_argument("--noise-rot", type=float, default=1e-3)
