@@ -5,22 +5,25 @@ errors, +-1 mm / +-0.05 rad; Gaussian measurement noise ``--noise-pos`` mm / ``-
 rad), the weighted solver (``calibrate_paper(..., noise)``) calibrates from
 
 * ``random``: ``m`` states drawn uniformly within the joint limits, new ones every trial, or
-* ``selected``: the ``m`` states chosen once by :func:`cdra_jax.pose_selection.select_poses`
-  (``--criterion``, default D-optimal) from a pool of ``--pool`` uniform states, on the nominal
-  model (the errors are unknown when one plans),
+* one column per criterion of ``--criteria`` (default ``i-opt,d-opt``): the ``m`` states chosen
+  once by :func:`cdra_jax.pose_selection.select_from_pool` from ``--pool`` tension-feasible
+  states (:func:`cdra_jax.simulation.sample_poses`) on the nominal model (the errors are
+  unknown when one plans), with 1000 uniform states as the workspace reference of ``i-opt``,
 
 and is scored by ``dp`` (Eq. 20) against the true (noise-free) tool poses at ``--verify`` fresh
-random states. Both curves share the trials' errors and noise (common random numbers). Printed:
+random states. All columns share the trials' errors and noise (common random numbers). Printed:
 median ``dp`` (mm) with a distribution-free 95 % confidence interval of the median (order
-statistics), the first ``m`` whose selected median is at or below the random median at
-``--target`` poses, and, with ``--bound``, a lower bound on what any ``m``-pose set within the
-joint limits can achieve for the expected held-out error (gradient descent on the states of
-the predicted ``E[dp^2]`` from :mod:`cdra_jax.uncertainty`, several starts).
+statistics), the selected sets' predicted ``sqrt(E[dp^2])`` (first order,
+:mod:`cdra_jax.uncertainty`), the first ``m`` whose selected median is at or below the random
+median at ``--target`` poses, and, with ``--bound M ...``, the certified lower bound of
+:func:`cdra_jax.pose_selection.prediction_bound` on the predicted ``sqrt(E[dp^2])`` of any
+``M`` poses, from the pool and from the ``3^dof`` grid of joint-limit extremes and mid-points
+plus 5000 uniform states, next to the prediction for random ``--target``-pose sets.
 
 Usage::
 
     python benchmarks/pose_selection.py                     # m = 5..15, 200 trials
-    python benchmarks/pose_selection.py --bound 7 --json
+    python benchmarks/pose_selection.py --bound 7 --json    # as in the README (~10 min)
 """
 
 from __future__ import annotations
