@@ -327,7 +327,7 @@ def _select(B: Array, m: int, eps: Array, exchange: bool, max_swaps: int, tol: f
     return idx, idx2, n
 
 
-def _i_value(B: Array, Q: Array, idx: Array, eps: Array) -> Array:
+def _i_value(B: Array, Q: Array, idx: Array, eps: Array | float) -> Array:
     """``tr(Q (M(S) + eps I)^-1)`` of the set ``idx``."""
     Bs = B[idx]
     M = eps * jnp.eye(B.shape[-1], dtype=B.dtype) + jnp.einsum("mkr,mks->rs", Bs, Bs)
@@ -348,6 +348,7 @@ def _select_i(B: Array, Q: Array, m: int, eps: Array, exchange: bool, max_swaps:
 
 
 _select_jit = jax.jit(_select, static_argnums=(1, 3, 4, 5))
+_sample_poses_jit = eqx.filter_jit(sample_poses)  # one compile instead of many eager ones
 _select_i_jit = jax.jit(_select_i, static_argnums=(2, 4, 5, 6))
 
 
@@ -430,6 +431,7 @@ def select_from_pool(
     eps = _RIDGE * jnp.sum(B * B) / (pool.shape[0] * r)
     max_swaps = 10 * m if max_exchanges is None else int(max_exchanges)
     if criterion == "i-opt":
+        assert noise is not None  # checked above
         Q = _reference_weight(arm, reference, noise, W)
         idx_greedy, idx, n_swaps = _select_i_jit(
             B, Q, int(m), eps, bool(exchange), max_swaps, 1e-10
@@ -482,7 +484,7 @@ def select_poses(
     if pool_size < m:
         raise ValueError(f"pool_size ({pool_size}) must be at least m ({m})")
     key = jax.random.PRNGKey(0) if key is None else key
-    pool = (sampler or sample_poses)(key, arm, int(pool_size))
+    pool = (sampler or _sample_poses_jit)(key, arm, int(pool_size))
     return select_from_pool(
         arm,
         np.asarray(pool),
