@@ -20,7 +20,8 @@ Criteria:
   minimises what a user of the calibrated arm sees: in ``benchmarks/pose_selection.py`` (200
   trials, common random numbers, 5000-state pool) its median held-out ``dp`` is below that of
   ``"d-opt"`` at every ``m`` from 5 to 15 but m = 10 (equal): 12 % lower at m = 5, 2 % at
-  m = 7, 7 % at m = 9. Unlike D-optimality it does not
+  m = 7, 7 % at m = 9 (only the m = 5 confidence intervals separate), and its first-order
+  prediction is lower at every ``m``. Unlike D-optimality it does not
   spend poses on parameter directions (e.g. tool orientation offsets seen only through the
   noisy orientation measurements) that barely move the tool position.
 * ``"d-opt"``: maximise ``log det M(S)``, the D-optimality of the whitened information on the
@@ -86,15 +87,15 @@ class PoseSelection:
         indices: their rows in ``pool`` ``(m,)``.
         pool: the candidate states ``(N, dof)``.
         criterion: ``"i-opt"``, ``"d-opt"`` or ``"o1"``.
-        log_det: ``log det M(S)`` of the selected set (no ridge), whitened for ``"d-opt"``,
-            unweighted for ``"o1"``.
-        log_det_greedy: the same after the greedy phase, before the exchanges.
+        log_det: ``log det M(S)`` of the selected set (no ridge), whitened for ``"i-opt"`` and
+            ``"d-opt"``, unweighted for ``"o1"``.
+        log_det_greedy: the same for the criterion's own greedy set, before the exchanges.
         o1: the observability index ``exp(log_det / (2 r)) / sqrt(m)`` of the same matrix.
         prediction_rms: predicted ``sqrt(E[dp^2])`` (mm, first order) of a calibration from the
             selected poses at the reference states (``sqrt(tr(Q M^-1))``, the I-criterion);
             ``nan`` without a noise model.
         rank: dimension ``r`` of the identifiable subspace of the pool.
-        n_exchanges: swaps made by the exchange pass.
+        n_exchanges: swaps made by the exchange pass (for ``"i-opt"``, by the start that won).
     """
 
     states: np.ndarray
