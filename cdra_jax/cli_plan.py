@@ -1,9 +1,13 @@
-"""``cdra-jax plan-poses``: choose which poses to measure (D-optimal selection from a pool).
+"""``cdra-jax plan-poses``: choose which poses to measure (I-optimal selection from a pool).
 
 Usage::
 
-    cdra-jax plan-poses --count 10 --out plan.csv [--model M] [--pool 2000] [--seed 0]
-        [--noise-pos 0.08 --noise-rot 0.001] [--criterion d-opt|o1] [--force]
+    cdra-jax plan-poses --count 10 --out plan.csv [--model M] [--pool 5000] [--seed 0]
+        [--noise-pos 0.08 --noise-rot 0.001] [--criterion i-opt|d-opt|o1] [--force]
+
+The pool is drawn by :func:`cdra_jax.simulation.sample_poses` (uniform within the joint limits,
+tension-feasible where the model has cables) and is also the workspace sample over which the
+I-criterion averages the predicted tool-position variance (:mod:`cdra_jax.pose_selection`).
 
 Writes a measurement-plan CSV in the measurement-file column naming (``pose`` and the module
 state columns ``arm.state_names``; no ``measured.*`` columns: it is a plan to be measured), with
@@ -23,6 +27,9 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+from .cli_common import load_arm, standalone_main
+from .pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE
+
 DEFAULT_NOISE_POS_MM = 0.08
 """The paper's FARO arm (Section VI)."""
 DEFAULT_NOISE_ROT_RAD = 1e-3
@@ -33,7 +40,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``plan-poses`` subcommand (``func`` = :func:`run`)."""
     p = subparsers.add_parser(
         "plan-poses",
-        help="choose the poses to measure (D-optimal selection from a pool)",
+        help="choose the poses to measure (I-optimal selection from a pool)",
         description="Select the module states to measure from a pool of random feasible "
         "states so that the calibration is as informative as possible, and write them as a "
         "measurement plan CSV (pose + module state columns).",
@@ -41,7 +48,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--model", metavar="M", help="model TOML file (default: the embedded CDRA)")
     p.add_argument("--count", metavar="m", type=int, required=True, help="poses to select")
     p.add_argument("--out", metavar="CSV", required=True, help="measurement plan to write")
-    p.add_argument("--pool", metavar="N", type=int, default=2000, help="candidate states (2000)")
+    p.add_argument(
+        "--pool",
+        metavar="N",
+        type=int,
+        default=DEFAULT_POOL_SIZE,
+        help=f"candidate states ({DEFAULT_POOL_SIZE})",
+    )
     p.add_argument("--seed", metavar="S", type=int, default=0, help="seed of the pool (0)")
     p.add_argument(
         "--noise-pos",
@@ -57,10 +70,12 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--criterion",
-        choices=("d-opt", "o1"),
-        default="d-opt",
-        help="d-opt: log det of the noise-weighted information on the identifiable subspace "
-        "(default); o1: Borm & Menq's observability index of the unweighted Jacobian",
+        choices=CRITERIA,
+        default=DEFAULT_CRITERION,
+        help="i-opt (default): smallest average predicted tool-position variance over the "
+        "pool (what the held-out accuracy measures); d-opt: largest log det of the "
+        "noise-weighted information on the identifiable subspace; o1: Borm & Menq's "
+        "observability index of the unweighted Jacobian",
     )
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(func=run)
@@ -120,7 +135,6 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     jax.config.update("jax_enable_x64", True)
-    from .io import default_arm, load_model
     from .pose_selection import select_poses
     from .uncertainty import predicted_pose_covariance
 
@@ -132,8 +146,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.force:
         raise FileExistsError(f"{out}: file exists; pass --force to replace it")
-    arm = default_arm() if args.model is None else load_model(args.model)
-    label = "embedded CDRA" if args.model is None else args.model
+    arm, label = load_arm(args.model)
     sel = select_poses(
         arm,
         args.count,
@@ -185,14 +198,7 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Stand-alone entry point (``python -m cdra_jax.cli_plan ...``), as ``cdra-jax plan-poses``."""
-    parser = argparse.ArgumentParser(prog="cdra-jax")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["plan-poses", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return args.func(args)
-    except (ValueError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    return standalone_main("plan-poses", register, argv)
 
 
 if __name__ == "__main__":

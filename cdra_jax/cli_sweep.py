@@ -20,6 +20,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from .cli_common import load_arm, standalone_main
+
 
 def _floats(text: str) -> list[float]:
     try:
@@ -89,7 +91,6 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from .io import default_arm, load_model
     from .sweeps import parse_noise_levels, run_sweep
 
     levels = parse_noise_levels(args.noise_pos, args.noise_rot)
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
             raise FileExistsError(f"{path}: file exists; pass --force to replace it")
     if args.plot and Path(args.plot).resolve() == out.resolve():
         raise ValueError("--plot and --out name the same file")
-    arm = default_arm() if args.model is None else load_model(args.model)
+    arm, label = load_arm(args.model)
     table = run_sweep(
         arm,
         levels,
@@ -115,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         m_verify=args.verify,
         progress=not args.no_progress,
     )
-    table.meta["model"] = "embedded CDRA" if args.model is None else str(args.model)
+    table.meta["model"] = label
     table.save(out, force=args.force)
     print(
         f"{len(table)} trials in {float(table.meta['seconds']):.1f} s on "
@@ -143,14 +144,7 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Stand-alone entry point (``python -m cdra_jax.cli_sweep ...``), as ``cdra-jax sweep``."""
-    parser = argparse.ArgumentParser(prog="cdra-jax")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["sweep", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return args.func(args)
-    except (ValueError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    return standalone_main("sweep", register, argv)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Pose selection: D-optimality on the identifiable subspace, O1, exchange, plan-poses CLI."""
+"""Pose selection: I- and D-optimality on the identifiable subspace, O1, exchange, the
+approximate-design bound and the plan-poses CLI."""
 
 import csv
 import itertools
@@ -16,6 +17,7 @@ from cdra_jax.pose_selection import (
     identifiable_basis,
     information_blocks,
     log_det_information,
+    prediction_bound,
     select_from_pool,
     select_poses,
 )
@@ -62,7 +64,7 @@ def test_exchange_reaches_a_swap_local_optimum(cdra, pool):
     gains checked against explicit log-dets), and the set is the global optimum on this tiny
     pool (all 2002 subsets of 5 from 14 enumerated)."""
     m = 5
-    sel = select_from_pool(cdra, pool, m, NOISE)
+    sel = select_from_pool(cdra, pool, m, NOISE, criterion="d-opt")
     A = _blocks_oracle(cdra, pool, NOISE)
     W = identifiable_basis(A)
     chosen = list(sel.indices)
@@ -133,7 +135,7 @@ def test_plan_poses_cli(cdra, tmp_path, capsys):
     assert "expected RMS accuracy" in printed and str(out) in printed
     lines = out.read_text().splitlines()
     comments = [ln for ln in lines if ln.startswith("#")]
-    assert any("d-opt" in c for c in comments) and any("0.08 mm" in c for c in comments)
+    assert any("i-opt" in c for c in comments) and any("0.08 mm" in c for c in comments)
     rows = list(csv.reader(ln for ln in lines if not ln.startswith("#")))
     assert rows[0] == ["pose", *cdra.state_names]
     assert [r[0] for r in rows[1:]] == [f"P{i:02d}" for i in range(1, 7)]
@@ -158,3 +160,37 @@ def test_tool_positions_used_for_whitening(cdra, pool):
     D = _blocks_oracle(cdra, pool[:2], None)
     top = (D[:, :3] - np.einsum("kij,kjn->kin", np.asarray(lie.hat3(p)), D[:, 3:])) / 0.08
     np.testing.assert_allclose(A[:, :3], top, rtol=1e-10, atol=1e-8)
+
+
+def test_i_opt_reaches_a_swap_local_optimum_of_the_predicted_heldout_error(cdra, pool):
+    """The I-criterion is the predicted E[dp^2] at the reference states, computed here
+    independently by the uncertainty module (SVD pseudo-inverse of the set's own Jacobian,
+    propagated pose covariance): no single swap improves the I-optimal set, it beats the
+    D-optimal one, and the approximate-design bound lies below all 2002 subsets of 5 from 14."""
+    m = 5
+    ref = np.asarray(sample_states(jax.random.PRNGKey(6), cdra, 40))
+    sel = select_from_pool(cdra, pool, m, NOISE, reference=ref)
+    assert sel.criterion == "i-opt" and len(set(sel.indices)) == m
+    swaps = [
+        [j if k == i else c for k, c in enumerate(sel.indices)]
+        for i in range(m)
+        for j in sorted(set(range(len(pool))) - set(sel.indices))
+    ]
+    subsets = list(itertools.combinations(range(len(pool)), m))
+    sets = np.array([list(sel.indices), *swaps, *subsets])  # one batch: one compile
+    rms = np.asarray(
+        jax.vmap(lambda q: predicted_pose_covariance(cdra, q, NOISE, ref).expected_delta_p)(
+            jnp.asarray(pool[sets])
+        )
+    )
+    chosen, swapped, best = rms[0], rms[1 : 1 + len(swaps)].min(), rms[1 + len(swaps) :].min()
+    assert sel.prediction_rms == pytest.approx(chosen, rel=1e-9)
+    # 1e-6: the selection works with M + eps I (a 1e-9 relative ridge)
+    assert chosen <= swapped * (1 + 1e-6)
+    d_opt = select_from_pool(cdra, pool, m, NOISE, criterion="d-opt", reference=ref)
+    assert chosen <= d_opt.prediction_rms * (1 + 1e-6)  # exchanged from the D-optimal start
+    bound = prediction_bound(cdra, pool, m, NOISE, reference=ref)
+    assert bound.lower <= best <= chosen
+    assert bound.lower <= bound.approximate < best  # weights beat uniform weights on a subset
+    assert bound.approximate - bound.lower < 1e-3 * bound.lower  # converged: the gap is small
+    assert bound.weights.sum() == pytest.approx(1.0) and np.all(bound.weights >= 0)
