@@ -40,6 +40,7 @@ from .io import load_result as load_result
 from .io import save_measurements as save_measurements
 from .io import save_model as save_model
 from .io import save_result as save_result
+from .pose_selection import prediction_bound as prediction_bound
 from .pose_selection import select_poses as select_poses
 from .sweeps import run_sweep as run_sweep
 from .uncertainty import analyze_uncertainty as analyze_uncertainty
