@@ -203,8 +203,7 @@ def test_cli_end_to_end(tmp_path, capsys):
         "residual_per_pose.png",
         "residual_vs_regressors.png",
     ]
-    assert main(argv) == 1  # no overwrite without --force
+    assert main(argv) == 1  # no overwrite without --force (refused before any work)
     assert "exists" in capsys.readouterr().err
-    assert main(argv + ["--force"]) == 0
     d = diagnose_files(None, data, 0.05, 0.0005)
     assert d.effect == "joint_compliance"

@@ -133,6 +133,20 @@ def _physical(ho: stats.HeldOut, noise: NoiseModel) -> np.ndarray:
     return ho.residual * scale
 
 
+def _suggested_noise(r: np.ndarray, df_resid: int, noise: NoiseModel) -> dict[str, float]:
+    """The noise (std) the geometric fit's residual would imply if nothing were missing: the
+    stated one scaled by the RMS of the whitened position and rotation residuals, corrected
+    for the degrees of freedom the fit uses."""
+    R = r.reshape(-1, 6)
+    dof = df_resid / r.size
+    kp = float(np.sqrt(np.mean(R[:, :3] ** 2) / dof))
+    kr = float(np.sqrt(np.mean(R[:, 3:] ** 2) / dof))
+    return {
+        "position_mm": kp * float(noise.position_mm),
+        "rotation_rad": kr * float(noise.rotation_rad),
+    }
+
+
 def _errors(ho: stats.HeldOut, noise: NoiseModel, p_value: float | None) -> HeldOutErrors:
     sp, sr = float(noise.position_mm), float(noise.rotation_rad)
     dp = sp * np.sqrt(np.mean(np.sum(ho.residual[:, :3] ** 2, axis=1)))
@@ -373,6 +387,7 @@ def diagnose(
             "seed": seed,
             "n_poses": m,
             "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": floor[1]},
+            "noise_suggested": _suggested_noise(r, df_resid, used_noise),
             "geometric_fit": {
                 "converged": bool(sol.converged),
                 "iterations": int(sol.iterations),

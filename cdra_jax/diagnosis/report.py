@@ -78,7 +78,12 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "of that kind but of another form than the vocabulary's."
             )
         else:
-            msg += " No single location explains it."
+            sug = det["noise_suggested"]
+            msg += (
+                " No single location explains it, and no pose-dependent probe finds structure "
+                "in it: the measuring device may be noisier than stated (the residual suggests "
+                f"{sug['position_mm']:.3g} mm, {sug['rotation_rad']:.3g} rad)."
+            )
         lines.append(msg)
     else:
         assert best is not None
