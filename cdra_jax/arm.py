@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -78,8 +79,25 @@ class Module(eqx.Module):
                 f"got {len(self.limits)}"
             )
         for lo, hi in self.limits:
+            if not (np.isfinite(lo) and np.isfinite(hi)):
+                raise ValueError(
+                    f"module {self.name!r}: limits must be finite (low, high) pairs, "
+                    f"got ({lo}, {hi})"
+                )
             if not lo < hi:
                 raise ValueError(f"module {self.name!r}: limit low {lo} is not below high {hi}")
+        if self.kind != "spherical" and not isinstance(self.axis, jax.core.Tracer):
+            a = np.asarray(self.axis, dtype=float)
+            if a.shape != (3,) or not np.all(np.isfinite(a)):
+                raise ValueError(
+                    f"module {self.name!r}: axis must be a finite 3-vector, got {self.axis!r}"
+                )
+            if abs(np.linalg.norm(a) - 1.0) > 1e-9:
+                raise ValueError(
+                    f"module {self.name!r}: axis must be a unit vector (norm "
+                    f"{np.linalg.norm(a):.6g}); build the module with revolute() or "
+                    "prismatic(), which normalise it"
+                )
         if (self.cable_base is None) != (self.cable_platform is None):
             raise ValueError(f"module {self.name!r}: cables need both base and platform points")
         if self.cable_base is not None and self.cable_platform is not None:
@@ -317,7 +335,14 @@ def apply_frame_errors(arm: Arm, errors: ArrayLike) -> Arm:
     ``errors`` is the flat parameter vector ``X (6 (K+1),)`` of Eq. 8 (ordered as
     ``arm.param_names``) or ``(K+1, 6)``; ``F_j -> exp(hat(X_j)) F_j``.
     """
-    X = jnp.asarray(errors).reshape(len(arm.frame_names), 6)
+    X = jnp.asarray(errors)
+    if X.size != arm.n_params:
+        raise ValueError(
+            f"arm {arm.name!r} has {arm.n_params} error parameters, a (v, w) twist for each "
+            f"frame of {arm.frame_names}: pass ({arm.n_params},) or "
+            f"({len(arm.frame_names)}, 6), got errors of shape {X.shape}"
+        )
+    X = X.reshape(len(arm.frame_names), 6)
     return arm.with_frames(lie.se3_exp(X) @ arm.frames)
 
 

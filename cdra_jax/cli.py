@@ -4,10 +4,13 @@ Usage::
 
     cdra-jax simulate --poses 20 --seed 1 --out poses.csv --truth truth.json
     cdra-jax calibrate --data poses.csv --out result.json [--model arm.toml] [--solver paper|lm]
+        [--loss ls|huber|cauchy]
 
 Exit codes: 0 success; 1 bad input or a file problem (one line ``error: ...`` on stderr, no
 traceback); 2 wrong usage (argparse); 3 the calibration did not converge (the result file is
-still written, with ``"converged": false``).
+still written, with ``"converged": false``). Warnings (implausible data, a poorly conditioned
+pose set, outliers) do not change the exit code: each is one ``warning: ...`` line on stderr and
+an entry of ``warnings`` in the result file.
 
 Adding a subcommand: write a ``_register_<name>(subparsers)`` function that adds its parser and
 sets ``func`` (a callable ``args -> int``) with ``set_defaults``, and append it to
@@ -134,13 +137,13 @@ def _simulation(key, arm, X, d_v, d_w, m: int, noise, random_errors: bool):
 
     from . import lie
     from .arm import apply_frame_errors
-    from .simulation import measure, random_frame_errors, sample_states
+    from .simulation import measure, random_frame_errors, sample_poses
 
     k_err, k_states, k_noise = jax.random.split(key, 3)
     if random_errors:
         X = random_frame_errors(k_err, arm, d_v, d_w).reshape(-1, 6)
     actual = apply_frame_errors(arm, X)
-    q = sample_states(k_states, arm, m)
+    q = sample_poses(k_states, arm, m)
     xyz, rotvec = lie.to_xyz_rotvec(actual.frames)
     return X, q, measure(k_noise, actual, q, noise), actual.frames, xyz, rotvec
 
@@ -170,10 +173,17 @@ def _register_calibrate(subparsers) -> None:
     )
     _add_noise_options(p, "of the measured tool poses, to weight the residual")
     p.add_argument(
+        "--loss",
+        choices=("ls", "huber", "cauchy"),
+        default="ls",
+        help="ls: plain least squares, as in the paper (default); huber or cauchy: robust "
+        "estimation that down-weights outlying poses (iteratively reweighted, around --solver)",
+    )
+    p.add_argument(
         "--max-iterations",
         metavar="N",
         type=int,
-        help="iteration cap (default: 20 for paper, 50 for lm)",
+        help="iteration cap (default: 20 for paper, 50 for lm; per round for a robust loss)",
     )
     _add_force_option(p)
     p.set_defaults(func=_run_calibrate)
@@ -185,22 +195,40 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         raise ValueError(f"--max-iterations must be at least 1, got {args.max_iterations}")
     _check_output(args.out, args.force, "--out")
 
-    from .calibration import calibrate_lm, calibrate_paper
+    from .calibration import calibrate_lm, calibrate_paper, calibrate_robust
+    from .conditioning import conditioning
     from .identifiability import analyze
-    from .io import check_pose_count, load_measurements, result_to_dict, save_result
+    from .io import (
+        check_plausibility,
+        check_pose_count,
+        load_measurements,
+        result_to_dict,
+        save_result,
+    )
 
     arm, model_label = _load_arm(args.model)
     meas = load_measurements(args.data, arm)
     check_pose_count(meas)
     assert meas.measured is not None  # the reader demands the measured columns by default
-    solve = calibrate_paper if args.solver == "paper" else calibrate_lm
+    # Wrong units or conventions stop here with an error naming the column; the rest warns.
+    warnings = list(check_plausibility(arm, meas))
     kwargs: dict[str, Any] = {"throw": False}
     if args.max_iterations is not None:
         kwargs["max_iterations"] = args.max_iterations
-    sol = _jitted(solve)(arm, meas.q, meas.measured, noise, **kwargs)
+    sol: Any
+    if args.loss == "ls":
+        solve = calibrate_paper if args.solver == "paper" else calibrate_lm
+        sol = _jitted(solve)(arm, meas.q, meas.measured, noise, **kwargs)
+    else:
+        kwargs.update(loss=args.loss, solver=args.solver)
+        sol = _jitted(calibrate_robust)(arm, meas.q, meas.measured, noise, **kwargs)
     # Unidentifiable directions are reported at the nominal model, where they read simply
     # (e.g. "0.707 upper_arm.vy - 0.707 forearm.vy" for the CDRA).
     report = analyze(arm, meas.q, meas.measured, noise)
+    cond = conditioning(arm, meas.q, meas.measured, noise)
+    shown = list(warnings)  # printed on stderr; the identifiability ones are in the summary
+    if cond.warning:
+        shown.append(cond.warning)
     result = result_to_dict(
         arm,
         sol,
@@ -210,14 +238,52 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         identifiability=report.to_dict(),
         pose_ids=meas.pose_ids,
         inputs={"model": model_label, "data": args.data, "data_sha256": _sha256(args.data)},
+        conditioning=cond.to_dict(),
+        warnings=[*warnings, *report.warnings, *([cond.warning] if cond.warning else [])],
     )
-    print(_calibration_summary(arm, result, model_label, args.data, report.summary()))
+    shown += [w for w in result["warnings"] if w not in shown and w not in report.warnings]
+    ident = report.summary()
+    if noise is not None:
+        # Covariance of the identified parameters, Cramer-Rao bound and 95 % intervals, at the
+        # calibrated model (issue: uncertainty with noise weights).
+        from .io import calibrated_arm_from_result
+        from .uncertainty import analyze_uncertainty
+
+        unc = analyze_uncertainty(
+            calibrated_arm_from_result(result, arm),
+            meas.q,
+            noise,
+            meas.measured,
+            estimate=result_errors(result, arm),
+        )
+        result["uncertainty"] = unc.to_dict()
+        ident = ident + "\n" + unc.summary()
+    print(_calibration_summary(arm, result, model_label, args.data, ident))
     path = save_result(result, args.out, force=args.force)
     print(f"wrote {path}")
+    for w in shown:
+        print(f"warning: {w}", file=sys.stderr)
     if not result["converged"]:
         print(f"warning: not converged: {result['message']}", file=sys.stderr)
         return EXIT_NOT_CONVERGED
     return EXIT_OK
+
+
+def result_errors(result: dict, arm) -> Any:
+    """Identified error twists ``(K+1, 6)`` (Eqs. 15-18) from a result dict, frame order."""
+    import numpy as np
+
+    from .arm import TWIST_COMPONENTS
+
+    return np.array(
+        [
+            [
+                np.nan if (v := result["frames"][f]["error_twist"][c]) is None else v
+                for c in TWIST_COMPONENTS
+            ]
+            for f in arm.frame_names
+        ]
+    )
 
 
 def _calibration_summary(arm, r: dict, model_label: str, data: str, ident: str) -> str:
@@ -227,10 +293,21 @@ def _calibration_summary(arm, r: dict, model_label: str, data: str, ident: str) 
         "paper": "paper (the paper's unweighted iterative least squares, Eqs. 9-14)",
         "weighted": "paper, weighted by the noise model (iterative least squares, Eqs. 9-14)",
         "lm": "lm (Levenberg-Marquardt)" + ("" if r["noise"] is None else ", weighted"),
-    }[r["solver"]]
+    }
+    rob = r.get("robust")
+    out = r.get("outliers") or {}
+    scale = out.get("scale") or {}
+    if rob is None:
+        text = solver_text[r["solver"]]
+    else:
+        text = (
+            f"{rob['loss']} (robust, c = {rob['tuning_constant']:g}) by iteratively reweighted "
+            f"least squares around {solver_text[rob['inner_solver']].split(' (')[0]}; "
+            f"{rob['rounds']} reweighting round{'s' if rob['rounds'] != 1 else ''}"
+        )
     lines = [
         f"model: {arm.name} ({model_label}); data: {data} ({r['n_poses']} poses)",
-        f"solver: {solver_text}",
+        f"solver: {text}",
     ]
     if r["noise"] is not None:
         n = r["noise"]
@@ -260,6 +337,19 @@ def _calibration_summary(arm, r: dict, model_label: str, data: str, ident: str) 
         names, rows, "identified frame errors dt = log(T^c T^-1) (Eqs. 15-18; v mm, w rad):"
     )
     lines.append(ident)
+    if scale:
+        flagged = [x for x in r["residuals"] if x.get("outlier")]
+        sp, sr = _fmt(scale["position_mm"], ".3g"), _fmt(scale["rotation_rad"], ".3g")
+        lines.append(
+            f"outliers (z > {out['threshold']:.3g}; residual scale {sp} mm, {sr} rad from the "
+            f"{scale['source']}): " + (str(len(flagged)) if flagged else "none")
+        )
+        for x in sorted(flagged, key=lambda x: -(x["z"] or 0.0)):
+            lines.append(
+                f"  {x['pose']}: z = {_fmt(x['z'], '.3g')}, weight {_fmt(x['weight'], '.2g')}, "
+                f"calibrated residual {_fmt(x['calibrated_position_mm'], '.3g')} mm, "
+                f"{_fmt(x['calibrated_rotation_rad'], '.3g')} rad"
+            )
     return "\n".join(lines)
 
 
@@ -300,6 +390,18 @@ def _register_simulate(subparsers) -> None:
         help="range of random rotation errors, per component (default 0.05 rad)",
     )
     _add_noise_options(p, "added to the measured tool poses (default: noise-free)")
+    p.add_argument(
+        "--cables",
+        action="store_true",
+        help="write the states of modules with cables as cable lengths <module>.l1 ... .lN",
+    )
+    p.add_argument(
+        "--cable-noise",
+        metavar="MM",
+        type=float,
+        default=0.0,
+        help="std of Gaussian noise on each cable length, with --cables (default 0)",
+    )
     p.add_argument("--out", metavar="D", required=True, help="measurement CSV file to write")
     p.add_argument("--truth", metavar="T.json", help="also write the preset errors as JSON")
     _add_force_option(p)
@@ -365,7 +467,26 @@ def _run_simulate(args: argparse.Namespace) -> int:
             for name, row in zip(arm.frame_names, X, strict=True)
         ),
     ]
-    meas = Measurements.from_arrays(arm, q, measured, comments=comments)
+    cable_lengths = None
+    if args.cables:
+        from .modules.cable_data import simulate_cable_lengths
+
+        if not 0 <= args.cable_noise < float("inf"):
+            raise ValueError(f"--cable-noise must be a non-negative number, got {args.cable_noise}")
+        cable_lengths = {
+            k: np.asarray(v)
+            for k, v in simulate_cable_lengths(
+                jax.random.fold_in(jax.random.PRNGKey(args.seed), 7), arm, q, args.cable_noise
+            ).items()
+        }
+        if not cable_lengths:
+            raise ValueError(f"--cables: no module of model {arm.name!r} has cables")
+        comments.append(
+            f"cable lengths (mm) for {', '.join(cable_lengths)}; noise std {args.cable_noise!r} mm"
+        )
+    meas = Measurements.from_arrays(
+        arm, q, measured, comments=comments, cable_lengths=cable_lengths
+    )
     path = save_measurements(meas, args.out, force=args.force)
     lines = [
         f"model: {arm.name} ({model_label}); {args.poses} poses, seed {args.seed}",
@@ -419,7 +540,14 @@ def _external(module: str) -> Registrar:
     return registrar
 
 
-SUBCOMMANDS: list[Registrar] = [_register_calibrate, _register_simulate, _external("diagnosis")]
+SUBCOMMANDS: list[Registrar] = [
+    _external("demo"),
+    _register_calibrate,
+    _register_simulate,
+    _external("cli_plan"),
+    _external("cli_sweep"),
+    _external("diagnosis"),
+]
 """One registrar per subcommand, in the order ``--help`` lists them."""
 
 

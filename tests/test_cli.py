@@ -115,6 +115,15 @@ def test_noise_flags_select_the_weighted_solver(tmp_path, capsys):
         got = r["frames"][name]["error_twist"]
         assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS[:3]) < 0.1
         assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS[3:]) < 1e-3
+    # with a noise model the result carries 95 % intervals, and the base/tool ones are finite
+    # and contain the estimate; upper_arm.wy is not identifiable on its own (elbow axis)
+    unc = r["uncertainty"]
+    assert unc["rank"] == 22 and unc["n_params"] == 24
+    params = unc["parameters"]
+    low, high = params["base.vx"]["interval"]
+    assert low < r["frames"]["base"]["error_twist"]["vx"] < high
+    assert params["upper_arm.wy"]["identifiable"] is False
+    assert params["upper_arm.wy"]["interval"] is None
 
 
 def test_explicit_model_file_gives_the_same_simulation_as_the_default(sim, tmp_path):
@@ -302,3 +311,20 @@ def test_external_subcommand_module_plugs_in(monkeypatch, capsys):
     monkeypatch.setattr(cli, "SUBCOMMANDS", [*cli.SUBCOMMANDS, cli._external("_fake_cmd")])
     assert cli.main(["fake", "--n", "3"]) == 7
     assert "fake ran with n=3" in capsys.readouterr().out
+
+
+def test_simulate_cables_then_calibrate(tmp_path, capsys):
+    data, truth, out = tmp_path / "cables.csv", tmp_path / "truth.json", tmp_path / "r.json"
+    assert (
+        _run("simulate", "--poses", M, "--seed", 4, "--cables", "--out", data, "--truth", truth)
+        == 0
+    )
+    header = [ln for ln in data.read_text().splitlines() if not ln.startswith("#")][0]
+    assert "shoulder.l6" in header and "wrist.l4" in header and "elbow.l2" in header
+    assert "shoulder.rx" not in header
+    assert _run("calibrate", "--data", data, "--out", out) == 0
+    r = json.loads(out.read_text())
+    preset = _truth(truth)["frames"]
+    for name in ("base", "tool"):
+        got = r["frames"][name]["error_twist"]
+        assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS) < 1e-8

@@ -394,3 +394,62 @@ def test_spreadsheet_quirks_bom_and_crlf_are_accepted(cdra, good_text, tmp_path)
     bad = _cell(good_text, 6, "elbow.q", "abc").replace("\n", "\r\n")
     with pytest.raises(MeasurementFileError, match="line 6, column 'elbow.q'"):
         loads_measurements("\ufeff" + bad, cdra)
+
+
+def _cable_csv(arm, q, module="shoulder"):
+    """A measurement CSV whose ``module`` state is given as cable lengths (exact IK)."""
+    from cdra_jax import tool_pose
+    from cdra_jax.io import Measurements, dumps_measurements
+    from cdra_jax.modules.cable_data import arm_cable_lengths
+
+    lengths = np.asarray(arm_cable_lengths(arm, q)[module])
+    lines = dumps_measurements(
+        Measurements.from_arrays(arm, q, np.asarray(tool_pose(arm, q)))
+    ).splitlines()
+    header = lines[0].split(",")
+    drop = [header.index(c) for c in arm.module(module).state_names]
+    new_header = [h for i, h in enumerate(header) if i not in drop]
+    new_header += [f"{module}.l{j + 1}" for j in range(lengths.shape[1])]
+    rows = []
+    for k, line in enumerate(lines[1:]):
+        cells = [c for i, c in enumerate(line.split(",")) if i not in drop]
+        rows.append(",".join(cells + [repr(float(v)) for v in lengths[k]]))
+    return "\n".join([",".join(new_header), *rows]) + "\n", lengths
+
+
+def test_cable_length_columns_give_the_module_state(cdra):
+    import jax
+
+    from cdra_jax.io import dumps_measurements, loads_measurements
+    from cdra_jax.simulation import sample_states
+
+    q = np.asarray(sample_states(jax.random.PRNGKey(3), cdra, 6))
+    text, _ = _cable_csv(cdra, q)
+    meas = loads_measurements(text, cdra, source="c.csv")
+    np.testing.assert_allclose(meas.q, q, atol=1e-9)
+    assert dumps_measurements(meas) == text  # the lengths are kept as given
+
+
+@pytest.mark.parametrize(
+    ("edit", "expected"),
+    [
+        (lambda v: "-5.0", ["line 3", "column 'shoulder.l6'", "not positive"]),
+        (lambda v: repr(float(v) + 20.0), ["line 3", "column 'shoulder.l", "no pose"]),
+    ],
+)
+def test_bad_cable_lengths_name_row_and_column(cdra, edit, expected):
+    import jax
+
+    from cdra_jax.io import loads_measurements
+    from cdra_jax.simulation import sample_states
+
+    q = np.asarray(sample_states(jax.random.PRNGKey(4), cdra, 5))
+    text, _ = _cable_csv(cdra, q)
+    lines = text.splitlines()
+    cells = lines[2].split(",")
+    cells[-1] = edit(cells[-1])
+    lines[2] = ",".join(cells)
+    with pytest.raises(MeasurementFileError) as info:
+        loads_measurements("\n".join(lines) + "\n", cdra, source="c.csv")
+    for part in expected:
+        assert part in str(info.value), str(info.value)

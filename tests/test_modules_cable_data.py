@@ -23,7 +23,7 @@ ROWS = [f"line {i + 4} (pose p{i})" for i in range(M)]
 @pytest.fixture(scope="module")
 def data(cdra):
     q = jax.jit(sample_feasible_states, static_argnums=2)(jax.random.PRNGKey(5), cdra, M)
-    exact = {k: np.asarray(v) for k, v in arm_cable_lengths(cdra, q).items()}
+    exact = {k: np.asarray(v) for k, v in jax.jit(arm_cable_lengths)(cdra, q).items()}
     return np.asarray(q), exact
 
 
@@ -49,7 +49,7 @@ def test_columns_and_table(cdra, data):
 def test_states_from_exact_and_noisy_lengths(cdra, data):
     q, exact = data
     np.testing.assert_allclose(arm_states_from_cable_lengths(cdra, exact), q, atol=1e-9)
-    noisy = simulate_cable_lengths(jax.random.PRNGKey(0), cdra, jnp.asarray(q), noise_mm=0.01)
+    noisy = jax.jit(simulate_cable_lengths)(jax.random.PRNGKey(0), cdra, jnp.asarray(q), 0.01)
     diff = np.concatenate([np.asarray(noisy[k]) - exact[k] for k in exact], axis=1)
     assert 0.005 < diff.std() < 0.02
     got = arm_states_from_cable_lengths(cdra, noisy)

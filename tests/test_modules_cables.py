@@ -48,20 +48,29 @@ def test_lengths_match_independent_geometry(cdra):
 
 def test_length_jacobian_is_the_left_derivative(cdra):
     sh, el, _ = cdra.modules
-    q = jnp.asarray([0.4, -0.2, 0.7])
-    R = lie.so3_exp(q)
-    b, a = sh.cable_base, sh.cable_platform
 
-    def lengths(d):
-        return jnp.linalg.norm(b - (lie.so3_exp(d) @ R @ a.T).T, axis=-1)
+    @jax.jit
+    def check(q, t):
+        R = lie.so3_exp(q)
 
-    np.testing.assert_allclose(
-        length_jacobian(sh, q), jax.jacfwd(lengths)(jnp.zeros(3)), rtol=0, atol=1e-10
-    )
-    # ... and minus the transposed structure matrix (the statics/kinematics duality).
-    np.testing.assert_allclose(length_jacobian(sh, q), -structure_matrix(sh, q).T, atol=1e-12)
-    J = jax.jacfwd(lambda t: cable_lengths(el, t))(jnp.asarray([0.8]))
-    np.testing.assert_allclose(length_jacobian(el, jnp.asarray([0.8])), J, atol=1e-10)
+        def lengths(d):
+            return jnp.linalg.norm(
+                sh.cable_base - (lie.so3_exp(d) @ R @ sh.cable_platform.T).T, axis=-1
+            )
+
+        return (
+            length_jacobian(sh, q),
+            jax.jacfwd(lengths)(jnp.zeros(3)),
+            -structure_matrix(sh, q).T,
+            length_jacobian(el, t),
+            jax.jacfwd(lambda t: cable_lengths(el, t))(t),
+        )
+
+    J, J_ad, A_T, Je, Je_ad = check(jnp.asarray([0.4, -0.2, 0.7]), jnp.asarray([0.8]))
+    np.testing.assert_allclose(J, J_ad, rtol=0, atol=1e-10)
+    # ... and minus the transposed structure matrix (the statics/kinematics duality)
+    np.testing.assert_allclose(J, A_T, atol=1e-12)
+    np.testing.assert_allclose(Je, Je_ad, atol=1e-10)
 
 
 @pytest.mark.parametrize("index", [0, 1, 2])

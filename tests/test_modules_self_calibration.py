@@ -33,30 +33,34 @@ def _study(cdra, index, seed):
     """Nominal module, true module with preset errors, and its states (80 feasible poses)."""
     nominal = cdra.modules[index]
     q = jnp.concatenate([_sample(jax.random.PRNGKey(seed + i), cdra, M) for i in range(2)])
-    states = cdra.split_state(q)[index]
-    n = nominal.n_cables
+    truth, states, lengths = _truth(nominal, cdra.split_state(q)[index], jax.random.PRNGKey(seed))
+    return nominal, truth, states, lengths
+
+
+@jax.jit
+def _truth(nominal, states, key):
     # preset errors: +-1 mm on every attachment coordinate, +-2 mm length offsets
-    err = jax.random.uniform(jax.random.PRNGKey(seed + 9), (n, 7), minval=-1, maxval=1)
-    err = err * jnp.asarray([1.0] * 6 + [2.0])
+    n = nominal.n_cables
+    err = jax.random.uniform(key, (n, 7), minval=-1, maxval=1) * jnp.asarray([1.0] * 6 + [2.0])
     truth = with_parameters(nominal, module_parameters(nominal) + err.reshape(-1))
-    return nominal, truth, states
+    return truth, states, cable_lengths(truth, states)
 
 
-def _canonical(nominal, module, states, with_states=False):
-    """Parameters (and states) of ``module`` in the gauge the solver reports (nominal-aligned)."""
-    theta, x = _fix_gauge(
+@jax.jit
+def _canonical(nominal, module, states):
+    """Parameters and states of ``module`` in the gauge the solver reports (nominal-aligned)."""
+    return _fix_gauge(
         nominal, module_parameters(nominal), module_parameters(module), _to_var(nominal, states)
     )
-    return (theta, x) if with_states else theta
 
 
-@pytest.mark.parametrize("index", [0, 2])
+@pytest.mark.parametrize("index", [0, pytest.param(2, marks=pytest.mark.slow)])
 def test_noise_free_recovery_of_spherical_modules(cdra, index):
-    nominal, truth, states = _study(cdra, index, 10 * index)
-    sol = _solve(nominal, cable_lengths(truth, states))
+    nominal, truth, states, lengths = _study(cdra, index, 10 * index)
+    sol = _solve(nominal, lengths)
     assert result_names(sol.result) == "successful"
     assert float(sol.residual_rms) < 1e-10
-    theta, R = _canonical(nominal, truth, states, with_states=True)
+    theta, R = _canonical(nominal, truth, states)
     assert float(jnp.max(jnp.abs(sol.parameters - theta))) < 1e-8
     # the errors were large: the nominal model misfits the lengths by about a millimetre
     assert float(sol.rms_history[0]) > 0.1
@@ -64,21 +68,30 @@ def test_noise_free_recovery_of_spherical_modules(cdra, index):
     np.testing.assert_allclose(lie.so3_exp(sol.states), R, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_noise_free_recovery_of_the_elbow_invariants(cdra):
-    nominal, truth, states = _study(cdra, 1, 5)
-    sol = _solve(nominal, cable_lengths(truth, states))
+    nominal, truth, states, lengths = _study(cdra, 1, 5)
+    sol = _solve(nominal, lengths)
     assert result_names(sol.result) == "successful"
     assert float(sol.residual_rms) < 1e-10
     want, got = gauge_invariants(truth), gauge_invariants(sol.module)
     assert set(want) == {"offset", "c", "p", "phase"}
     for key in want:
         np.testing.assert_allclose(got[key], want[key], rtol=1e-10, atol=1e-8)
+    # noisy lengths: badly conditioned (2 cables, one redundant length per pose), but the damped
+    # iteration converges to a residual of the size the noise implies instead of diverging
+    noisy = lengths + 0.02 * jax.random.normal(jax.random.PRNGKey(4), lengths.shape)
+    sol = _solve(nominal, noisy)
+    assert result_names(sol.result) == "successful"
+    m = lengths.shape[0]
+    expect = 0.02 * np.sqrt((m * (2 - 1) - 7) / (m * 2))
+    assert 0.7 < float(sol.residual_rms) / expect < 1.3
 
 
 def test_recovery_with_length_noise_is_within_its_predicted_uncertainty(cdra):
     sigma = 0.02  # mm
-    nominal, truth, states = _study(cdra, 0, 40)
-    noisy = cable_lengths(truth, states) + sigma * jax.random.normal(
+    nominal, truth, states, lengths = _study(cdra, 0, 40)
+    noisy = lengths + sigma * jax.random.normal(
         jax.random.PRNGKey(3), states.shape[:1] + (nominal.n_cables,)
     )
     sol = _solve(nominal, noisy)
@@ -90,7 +103,7 @@ def test_recovery_with_length_noise_is_within_its_predicted_uncertainty(cdra):
     ratio = float(sol.residual_rms) ** 2 / (sigma**2 * dof_res / (m * n))
     assert chi2.ppf(0.001, dof_res) / dof_res < ratio < chi2.ppf(0.999, dof_res) / dof_res
     # parameter error in the identifiable subspace: Mahalanobis distance ~ chi^2(rank)
-    err = np.asarray(sol.parameters - _canonical(nominal, truth, states))
+    err = np.asarray(sol.parameters - _canonical(nominal, truth, states)[0])
     cov = report.covariance(sigma)
     stat = err @ np.linalg.pinv(cov, rcond=1e-12, hermitian=True) @ err
     assert stat < chi2.ppf(0.999, report.rank), stat
@@ -121,8 +134,8 @@ def test_identifiability_report_names_the_gauge_freedoms(cdra):
 
 
 def test_calibrated_module_goes_into_the_arm_and_the_model_file(cdra):
-    nominal, truth, states = _study(cdra, 0, 10)
-    sol = _solve(nominal, cable_lengths(truth, states))
+    nominal, _, _, lengths = _study(cdra, 0, 10)
+    sol = _solve(nominal, lengths)
     arm = with_module(cdra, sol.module)
     assert arm.modules[0].cable_offset is not None
     back = loads_model(dumps_model(arm))

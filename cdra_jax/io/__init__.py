@@ -13,6 +13,7 @@ from .measurements import check_pose_count as check_pose_count
 from .measurements import dumps_measurements as dumps_measurements
 from .measurements import load_measurements as load_measurements
 from .measurements import loads_measurements as loads_measurements
+from .measurements import rigid_transform_problem as rigid_transform_problem
 from .measurements import save_measurements as save_measurements
 from .model import ModelFileError as ModelFileError
 from .model import arm_from_dict as arm_from_dict
@@ -23,6 +24,7 @@ from .model import dumps_model as dumps_model
 from .model import load_model as load_model
 from .model import loads_model as loads_model
 from .model import save_model as save_model
+from .plausibility import check_plausibility as check_plausibility
 from .results import ResultFileError as ResultFileError
 from .results import calibrated_arm_from_result as calibrated_arm_from_result
 from .results import dumps_result as dumps_result

@@ -59,6 +59,10 @@ QUATERNION_COLUMNS = ("measured.qw", "measured.qx", "measured.qy", "measured.qz"
 AUX_COLUMNS = ("time_s", "payload_kg", "temperature_c")
 """Auxiliary columns besides ``approach.<module>``."""
 QUATERNION_TOL = 1e-6
+#: Largest accepted rotation-vector angle (rad).  Far beyond any rotation vector in radians
+#: (even one written in degrees stays below ~312), and small enough that ``sin``/``cos`` of it
+#: keep full double precision, so the rotation built from it is orthonormal to 1e-12.
+ROTVEC_MAX_ANGLE = 1e3
 """A measured quaternion is accepted (and normalised) when ``| |q| - 1 | <= QUATERNION_TOL``."""
 _ORTHO_TOL = 1e-6
 
@@ -202,6 +206,7 @@ class Measurements:
         orientation: Orientation = "rotvec",
         aux: Mapping[str, ArrayLike] | None = None,
         comments: Iterable[str] = (),
+        cable_lengths: Mapping[str, ArrayLike] | None = None,
     ) -> Measurements:
         """Measurements from arrays (joint coordinates; measured orientation as ``orientation``).
 
@@ -214,6 +219,9 @@ class Measurements:
                 (``qw >= 0``).
             aux: auxiliary columns, name -> ``(m,)``.
             comments: comment lines (without ``#``).
+            cable_lengths: ``{module: (m, n)}`` measured cable lengths (mm); those modules are
+                written as ``<module>.l1 ... <module>.lN`` columns instead of joint coordinates
+                (``q`` is kept as the states the lengths were measured at).
         """
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != arm.dof:
@@ -231,7 +239,25 @@ class Measurements:
         if not np.all(np.isfinite(q)):
             raise ValueError("q contains NaN or inf")
         values: dict[str, np.ndarray] = {n: q[:, j].copy() for j, n in enumerate(arm.state_names)}
-        columns = [POSE_COLUMN, *arm.state_names]
+        columns = [POSE_COLUMN]
+        cables = dict(cable_lengths or {})
+        for mod in arm.modules:
+            if mod.name not in cables:
+                columns += mod.state_names
+                continue
+            L = np.asarray(cables.pop(mod.name), dtype=float)
+            if L.shape != (m, mod.n_cables) or mod.n_cables == 0:
+                raise ValueError(
+                    f"cable_lengths[{mod.name!r}]: expected shape ({m}, {mod.n_cables}) "
+                    f"(module cables in the model), got {L.shape}"
+                )
+            for n in mod.state_names:
+                del values[n]
+            for j in range(mod.n_cables):
+                values[f"{mod.name}.l{j + 1}"] = L[:, j].copy()
+                columns.append(f"{mod.name}.l{j + 1}")
+        if cables:
+            raise ValueError(f"cable_lengths: unknown modules {sorted(cables)}")
         T = None
         if measured is not None:
             T = np.asarray(measured, dtype=float)
@@ -293,19 +319,44 @@ def _rotvec_quaternion(T: Array) -> tuple[Array, Array]:
     return lie.so3_log(lie.rotation(T)), lie.rotation_to_quaternion(lie.rotation(T))
 
 
+def rigid_transform_problem(T: ArrayLike, tol: float = _ORTHO_TOL) -> str | None:
+    """What keeps a 4x4 matrix from being a rigid transform ``[[R, p], [0, 1]]``, or ``None``.
+
+    Checks the shape, finiteness, the last row, orthonormality of ``R`` (``max |R^T R - I|``
+    up to ``tol``) and handedness (``det R = +1``; a reflection is a left-handed frame).
+    """
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "contains NaN or inf"
+    if np.any(T[3] != np.array([0.0, 0.0, 0.0, 1.0])):
+        return f"last row must be [0, 0, 0, 1], got {T[3].tolist()}"
+    R = T[:3, :3]
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if dev > tol:
+        return (
+            f"rotation block is not orthonormal (max |R^T R - I| = {dev:.2e}): a scaled or "
+            "sheared matrix, or one written with too few digits?"
+        )
+    if np.linalg.det(R) < 0:
+        return (
+            "rotation block is a reflection (det R = -1, a left-handed frame): is one axis of "
+            "the measuring device or of the exported frame flipped?"
+        )
+    return None
+
+
 def _check_poses(T: np.ndarray, m: int) -> None:
     if T.shape != (m, 4, 4):
         raise ValueError(f"measured must have shape ({m}, 4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError("measured contains NaN or inf")
-    R = T[:, :3, :3]
-    dev = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0.0)
-    bottom = np.abs(T[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(initial=0.0)
-    if dev > _ORTHO_TOL or bottom != 0.0 or np.any(np.linalg.det(R) < 0):
-        raise ValueError(
-            "measured must hold rigid transforms [[R, p], [0, 1]] with R a rotation "
-            f"(max |R^T R - I| = {dev:.2e})"
-        )
+    for i in range(m):
+        problem = rigid_transform_problem(T[i])
+        if problem:
+            raise ValueError(
+                f"measured[{i}]: measured poses must be rigid transforms [[R, p], [0, 1]]; "
+                f"{problem}"
+            )
 
 
 def _check_ids(ids: Sequence[str], err) -> None:
@@ -499,6 +550,19 @@ def loads_measurements(
         xyz = np.stack([values[c] for c in POSITION_COLUMNS], axis=-1)
         if layout.orientation == "rotvec":
             rv = np.stack([values[c] for c in ROTVEC_COLUMNS], axis=-1)
+            angle = np.linalg.norm(rv, axis=-1)
+            bad = np.flatnonzero(~(angle <= ROTVEC_MAX_ANGLE))
+            if bad.size:
+                k = int(bad[0])
+                j = int(np.argmax(np.abs(rv[k])))
+                raise ctx.error(
+                    f"rotation vector (measured.rx, .ry, .rz) = {tuple(rv[k].tolist())} has an "
+                    f"angle of {angle[k]:.4g} rad, above the limit {ROTVEC_MAX_ANGLE:g} rad: "
+                    "not a rotation vector in radians (a position or a value in another unit "
+                    "in this column?)",
+                    column=ROTVEC_COLUMNS[j],
+                    row=k,
+                )
             measured = np.asarray(_poses_from_rotvec(xyz, rv), dtype=float)
         else:
             quat = np.stack([values[c] for c in QUATERNION_COLUMNS], axis=-1)

@@ -41,6 +41,7 @@ import tomli_w
 
 from .. import lie
 from ..arm import MODULE_KINDS, Arm, Module
+from .files import write_text_atomic
 
 _ORTHO_TOL = 1e-6
 _DEFAULT_MODEL = "cdra.toml"
@@ -51,6 +52,9 @@ _to_xyz_rotvec = jax.jit(lie.to_xyz_rotvec)
 
 class ModelFileError(ValueError):
     """A model file is malformed; the message names the file and the entry."""
+
+
+_ROTVEC_MAX_ANGLE = 1e3  # rad; as io.measurements.ROTVEC_MAX_ANGLE
 
 
 def _err(source: str, where: str, what: str) -> ModelFileError:
@@ -97,10 +101,19 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
         raise _err(source, where, "needs 'xyz' (mm) and 'rotvec' (rad), or 'matrix' (4x4)")
     xyz = _vector(source, f"{where}.xyz", spec["xyz"], 3)
     rv = _vector(source, f"{where}.rotvec", spec["rotvec"], 3)
+    if not np.linalg.norm(rv) <= _ROTVEC_MAX_ANGLE:
+        raise _err(
+            source,
+            f"{where}.rotvec",
+            f"angle {np.linalg.norm(rv):.4g} rad is above {_ROTVEC_MAX_ANGLE:g} rad: "
+            "not a rotation vector in radians",
+        )
     return np.asarray(_from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
 
 
 def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
+    if not isinstance(spec, Mapping):
+        raise _err(source, f"modules[{i}]", f"expected a table ([[modules]]), got {spec!r}")
     name = spec.get("name")
     where = f"modules[{i}] ({name!s})"
     if not isinstance(name, str) or not name:
@@ -186,7 +199,12 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
     for key in ("mass", "pretension", "stiffness"):
         if key in spec:
             v = spec[key]
-            if not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not math.isfinite(v)
+                or v < 0
+            ):
                 raise _err(source, f"{where}.{key}", f"expected a non-negative number, got {v!r}")
             kwargs[key] = float(v)
     if "com" in spec:
@@ -207,6 +225,8 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
     unknown = sorted(set(spec) - {"name", "description", "gravity", "frames", "modules"})
     if unknown:
         raise _err(source, "top level", f"unknown keys {unknown}")
+    if not isinstance(spec.get("description", ""), str):
+        raise _err(source, "description", f"expected a string, got {spec['description']!r}")
     frames = spec.get("frames")
     modules = spec.get("modules")
     if not isinstance(modules, list) or not modules:
@@ -240,7 +260,7 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
         modules=mods,
         frame_names=tuple(names),
         name=spec["name"],
-        description=str(spec.get("description", "")),
+        description=spec.get("description", ""),
         gravity=jnp.asarray(gravity),
     )
 
@@ -326,6 +346,12 @@ def dumps_model(arm: Arm, *, exact: bool = False) -> str:
     return tomli_w.dumps(arm_to_dict(arm, exact=exact))
 
 
-def save_model(arm: Arm, path: str | os.PathLike, *, exact: bool = False) -> None:
-    """Write ``arm`` as a model TOML file (see :func:`dumps_model`)."""
-    Path(path).write_text(dumps_model(arm, exact=exact), encoding="utf-8")
+def save_model(
+    arm: Arm, path: str | os.PathLike, *, exact: bool = False, force: bool = False
+) -> Path:
+    """Write ``arm`` as a model TOML file (see :func:`dumps_model`); returns the path.
+
+    Written atomically (a reader or a crash never sees half a file); an existing file is only
+    replaced with ``force=True``, otherwise :class:`~cdra_jax.io.OutputExistsError`.
+    """
+    return write_text_atomic(path, dumps_model(arm, exact=exact), force=force)

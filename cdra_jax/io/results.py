@@ -23,8 +23,22 @@ Structure (see the README for a complete example; ``...`` marks repetition)::
                  ...},
       "identifiability": {"rank": 22, "n_params": 24, "unidentifiable": ["..."], ...},
       "residuals": [{"pose": "p01", "nominal_position_mm": ..., "nominal_rotation_rad": ...,
-                     "calibrated_position_mm": ..., "calibrated_rotation_rad": ...}, ...]
+                     "calibrated_position_mm": ..., "calibrated_rotation_rad": ...,
+                     "z": 0.8, "weight": 1.0, "outlier": false}, ...],
+      "outliers": {"threshold": 1.9347, "scale": {"position_mm": ..., "rotation_rad": ...,
+                   "source": "noise model" | "MAD"}, "poses": ["p07"]},
+      "robust": null | {"loss": "huber", "tuning_constant": 1.345, "rounds": 6,
+                        "inner_solver": "paper" | "lm"},
+      "conditioning": null | {"condition_number": ..., "ill_conditioned": false, ...},
+      "warnings": ["..."]
     }
+
+Per pose, ``z`` is the standardized residual of the pose at the calibrated model (the RMS of its
+six residual entries in units of the residual scale, see :mod:`cdra_jax.calibration.robust`),
+``weight`` the weight the fit gave it (1 for least squares) and ``outlier`` whether
+``z > threshold``; ``outliers.poses`` lists the flagged poses. For least squares the scale is the
+noise model's or a robust MAD estimate of the fit's residuals, so a gross outlier is flagged
+even when the fit did not down-weight it.
 
 ``iterations[k-1]`` holds the norm of step ``k`` (the paper solver: ``||X||`` of Eq. 10; LM:
 ``||X_k - X_{k-1}||``, 0 for a rejected step) and the deviation metrics after it. Non-finite
@@ -53,8 +67,10 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import TWIST_COMPONENTS, Arm, tool_pose
 from ..calibration.model import NoiseModel, pose_errors
+from ..calibration.robust import OUTLIER_THRESHOLD, RobustSolution, standardized_residuals
 from ..calibration.solution import CalibrationSolution, result_messages, result_names
 from .files import json_text, write_text_atomic
+from .measurements import rigid_transform_problem
 
 RESULT_FORMAT = "cdra_jax.calibration_result"
 RESULT_FORMAT_VERSION = 1
@@ -109,9 +125,12 @@ def _readouts(arm: Arm, frames: Array, q: Array, measured: Array):
     )
 
 
+_standardized = eqx.filter_jit(standardized_residuals)
+
+
 def result_to_dict(
     arm: Arm,
-    solution: CalibrationSolution,
+    solution: CalibrationSolution | RobustSolution,
     q: ArrayLike,
     measured: ArrayLike,
     *,
@@ -119,20 +138,31 @@ def result_to_dict(
     identifiability: Mapping[str, Any] | None = None,
     pose_ids: Sequence[str] | None = None,
     inputs: Mapping[str, Any] | None = None,
+    conditioning: Mapping[str, Any] | None = None,
+    warnings: Sequence[str] = (),
 ) -> dict[str, Any]:
     """JSON-ready mapping of one (unbatched) calibration (see the module docstring).
 
     Args:
         arm: the nominal model the solver started from.
-        solution: its :class:`~cdra_jax.calibration.CalibrationSolution`.
+        solution: its :class:`~cdra_jax.calibration.CalibrationSolution`, or the
+            :class:`~cdra_jax.calibration.RobustSolution` of a robust fit (its weights, flags
+            and settings are written too).
         q: ``(m, dof)`` module states of the fitted poses.
         measured: ``(m, 4, 4)`` measured tool poses.
-        noise: the noise model used for weighting, or ``None``.
+        noise: the noise model used for weighting (scalar stds), or ``None``.
         identifiability: ``identifiability.analyze(...).to_dict()``; computed at the
             nominal model (with ``measured`` and ``noise``) when ``None``.
         pose_ids: identifiers of the poses (default ``"1"``, ``"2"``, ...).
         inputs: file names and the like, stored under ``inputs`` as given.
+        conditioning: ``conditioning.conditioning(...).to_dict()``, stored as given.
+        warnings: plain-text warnings to store (plausibility, identifiability, ...); the
+            outlier warning is added here.
     """
+    robust = solution if isinstance(solution, RobustSolution) else None
+    if robust is not None:
+        solution = robust.solution
+    assert isinstance(solution, CalibrationSolution)
     if np.ndim(solution.iterations) != 0:
         raise ValueError(
             "result_to_dict takes one calibration; index a batched (vmapped) solution first, "
@@ -167,6 +197,22 @@ def result_to_dict(
         }
         for j, name in enumerate(arm.frame_names)
     }
+    if robust is not None:
+        z, scale = np.asarray(robust.z, dtype=float), np.asarray(robust.scale, dtype=float)
+        weights, threshold = np.asarray(robust.weights, dtype=float), robust.threshold
+    else:
+        z, scale = (
+            np.asarray(a, dtype=float)
+            for a in _standardized(
+                arm.with_frames(jnp.asarray(cal_frames)),
+                jnp.asarray(q),
+                jnp.asarray(measured),
+                noise,
+                rank=solution.rank,
+            )
+        )
+        weights, threshold = np.ones(m), OUTLIER_THRESHOLD
+    flagged = z > threshold
     residuals = [
         {
             "pose": ids[i],
@@ -174,9 +220,16 @@ def result_to_dict(
             "nominal_rotation_rad": _num(r0[i]),
             "calibrated_position_mm": _num(p1[i]),
             "calibrated_rotation_rad": _num(r1[i]),
+            "z": _num(z[i]),
+            "weight": _num(weights[i]),
+            "outlier": bool(flagged[i]),
         }
         for i in range(m)
     ]
+    outlier_ids = [ids[i] for i in np.flatnonzero(flagged)]
+    warnings = list(warnings)
+    if outlier_ids:
+        warnings.append(outlier_warning(ids, z, weights, flagged, threshold, robust is not None))
     return {
         "format": RESULT_FORMAT,
         "format_version": RESULT_FORMAT_VERSION,
@@ -211,7 +264,68 @@ def result_to_dict(
         "frames": frames,
         "identifiability": _finite(dict(identifiability)),
         "residuals": residuals,
+        "outliers": {
+            "threshold": float(threshold),
+            "scale": {
+                "position_mm": _num(scale[0]),
+                "rotation_rad": _num(scale[1]),
+                "source": "noise model" if noise is not None else "MAD",
+            },
+            "poses": outlier_ids,
+        },
+        "robust": None
+        if robust is None
+        else {
+            "loss": robust.loss,
+            "tuning_constant": float(robust.tuning),
+            "rounds": int(robust.rounds),
+            "inner_solver": "lm" if solution.solver.startswith("lm") else "paper",
+        },
+        "conditioning": None if conditioning is None else _finite(dict(conditioning)),
+        "warnings": warnings,
     }
+
+
+def outlier_warning(
+    ids: Sequence[str],
+    z: np.ndarray,
+    weights: np.ndarray,
+    flagged: np.ndarray,
+    threshold: float,
+    robust: bool,
+    shown: int = 5,
+) -> str:
+    """The one-line warning naming the flagged poses (largest ``z`` first).
+
+    When more than a quarter of the poses are flagged the text says so: that is more than a
+    few bad measurements explain (a noise model that is too optimistic, an effect the model
+    lacks, or gross outliers that least squares has spread over every residual).
+    """
+    order = [int(i) for i in np.argsort(-z) if flagged[i]]
+    parts = [
+        f"{ids[i]} (z = {z[i]:.3g}" + (f", weight {weights[i]:.2g})" if robust else ")")
+        for i in order[:shown]
+    ]
+    listed = ", ".join(parts) + (f" and {len(order) - shown} more" if len(order) > shown else "")
+    if len(order) > max(2, len(ids) // 4):
+        return (
+            f"{len(order)} of {len(ids)} poses have standardized residuals above "
+            f"{threshold:.3g} ({listed}): more than a few bad measurements explain; the noise "
+            "model may be too optimistic, the model may lack an effect, or "
+            + (
+                "the data may not fit it at all"
+                if robust
+                else "least squares has spread a few gross outliers over every residual (a "
+                "robust loss, --loss huber, tells these apart)"
+            )
+        )
+    tail = (
+        "; the robust fit down-weighted them"
+        if robust
+        else "; least squares gives them full weight: check them, or use a robust loss "
+        "(--loss huber)"
+    )
+    return f"{len(order)} pose(s) look like outliers (z > {threshold:.3g}): {listed}{tail}"
 
 
 def dumps_result(result: Mapping[str, Any]) -> str:
@@ -254,11 +368,19 @@ def loads_result(text: str, source: str = "<result>") -> dict[str, Any]:
             if not isinstance(f, dict) or key not in f:
                 raise ResultFileError(f"{source}: frames.{name}: missing key {key!r}")
         for key in ("nominal", "calibrated"):
-            M = np.asarray(f[key].get("matrix") if isinstance(f[key], dict) else None, dtype=float)
+            try:
+                M = np.asarray(
+                    f[key].get("matrix") if isinstance(f[key], dict) else None, dtype=float
+                )
+            except (TypeError, ValueError):
+                M = np.zeros(0)
             if M.shape != (4, 4) or not np.all(np.isfinite(M)):
                 raise ResultFileError(
                     f"{source}: frames.{name}.{key}.matrix: expected 4 rows of 4 finite numbers"
                 )
+            problem = rigid_transform_problem(M)
+            if problem:
+                raise ResultFileError(f"{source}: frames.{name}.{key}.matrix: {problem}")
     for key in ("rank", "n_params"):
         if key not in d["identifiability"]:
             raise ResultFileError(f"{source}: identifiability: missing key {key!r}")

@@ -5,9 +5,10 @@ has for it (``<module>.<suffix>``):
 
 * :class:`JointCoordinates`: ``<module>.rx .ry .rz`` (spherical: rotation vector of the platform
   in the module base frame, rad) or ``<module>.q`` (revolute: rad; prismatic: mm). Used as is.
-* :class:`CableLengths`: ``<module>.l1 ... <module>.lN`` (mm), to be turned into the module state
-  by the module's cable forward kinematics. **Not supported yet**: the reader recognises the
-  columns and raises a clear error naming them.
+* :class:`CableLengths`: ``<module>.l1 ... <module>.lN`` (mm), turned into the module state by
+  the module's cable forward kinematics (:mod:`cdra_jax.modules.cable_data`: Gauss-Newton over
+  the redundant cables). Negative, non-finite or inconsistent lengths (RMS misfit above the
+  documented tolerance) are errors naming the row and column.
 
 Adding a source (or finishing :class:`CableLengths`) touches only this file: subclass
 :class:`StateSource`, implement :meth:`~StateSource.claims`, :meth:`~StateSource.columns` and
@@ -88,8 +89,8 @@ class JointCoordinates(StateSource):
 class CableLengths(StateSource):
     """``<module>.l1 ... <module>.lN`` (mm): cable lengths, through the module's forward kinematics.
 
-    Column checks are in place (contiguous ``l1 .. lN``; ``N`` equal to the module's cable count
-    when the model gives its cables); the conversion is not implemented yet and raises.
+    The columns must be contiguous ``l1 .. lN`` with ``N`` the module's cable count in the model.
+    The file's lengths are kept as given; the state is their least-squares forward kinematics.
     """
 
     description = "cable lengths"
@@ -117,13 +118,26 @@ class CableLengths(StateSource):
         return tuple(f"l{i}" for i in range(1, n + 1))
 
     def to_state(self, module: Module, values: np.ndarray, ctx: RowContext) -> np.ndarray:
-        n = values.shape[-1]
-        raise ctx.error(
-            f"cable-length columns {module.name}.l1 ... {module.name}.l{n} are not supported yet "
-            "(the module's cable forward kinematics is not wired into the reader); give joint "
-            f"coordinates {JointCoordinates().expected_text(module)} instead",
-            column=f"{module.name}.l1",
-        )
+        from ..modules.cable_data import check_cable_lengths
+
+        if module.n_cables == 0:
+            raise ctx.error(
+                f"module {module.name!r} has no cables in the model, so its state cannot be "
+                f"computed from cable lengths; give {JointCoordinates().expected_text(module)}",
+                column=f"{module.name}.l1",
+            )
+        states, _, problems = check_cable_lengths(module, values)
+        if problems:
+            p = problems[0]
+            n = values.shape[-1]
+            col = (
+                f"{module.name}.l1 ... {module.name}.l{n}"
+                if p.column is None
+                else f"{module.name}.l{p.column + 1}"
+            )
+            more = f" ({len(problems) - 1} more bad rows)" if len(problems) > 1 else ""
+            raise ctx.error(p.message + more, column=col, row=None if p.row < 0 else p.row)
+        return states
 
     def expected_text(self, module: Module) -> str:
         n = module.n_cables

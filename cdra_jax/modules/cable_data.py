@@ -35,6 +35,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from ..arm import Arm, Module
+from ._linalg import small_inv
 from ._results import result_names
 from .cables import (
     DEFAULT_RESIDUAL_TOL,
@@ -211,8 +212,8 @@ def check_cable_lengths(
                     problems.append(CableDataProblem(int(i), j, what))
                 else:
                     what += (
-                        f" (with {n} cables for {module.dof} state entries a misfit cannot be "
-                        "pinned to one column)"
+                        f" (with {n} cables for {module.dof} degrees of freedom, one redundant "
+                        "length, a misfit cannot be pinned to one column)"
                     )
                     problems.append(CableDataProblem(int(i), None, what))
             else:
@@ -235,7 +236,7 @@ def _fk_jit(module: Module, lengths: Array, residual_tol: Array):
     # for a single bad length the largest one is at that length (Baarda's data snooping).
     J = length_jacobian(module, sol.state)
     G = jnp.einsum("...ni,...nj->...ij", J, J)
-    h = jnp.einsum("...ni,...ij,...nj->...n", J, jnp.linalg.pinv(G), J)
+    h = jnp.einsum("...ni,...ij,...nj->...n", J, small_inv(G), J)
     w = jnp.abs(sol.residuals) / jnp.sqrt(jnp.maximum(1.0 - h, 1e-12))
     return sol, w
 

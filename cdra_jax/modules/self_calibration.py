@@ -13,9 +13,14 @@ left-multiplied exponential updates (spherical) or additive ones, each step is t
 Gauss-Newton step computed by eliminating the states pose by pose (the projection
 ``P_k = I - J_q (J_q^T J_q)^-1 J_q^T`` of each pose's residual and parameter Jacobian, a Schur
 complement), and the parameter step is the minimum-norm least-squares solution of the reduced
-system (:func:`cdra_jax.calibration.min_norm_lstsq`, rank-revealing SVD). Unidentifiable
-parameter combinations are therefore never moved (to first order). The initial states come
-from the forward kinematics of the nominal model.
+system (rank-revealing SVD with the cut-off of :func:`cdra_jax.calibration.default_rcond`, as
+in :func:`cdra_jax.calibration.min_norm_lstsq`). Unidentifiable parameter combinations are
+therefore never moved (to first order). The iteration starts as plain Gauss-Newton; a step
+that does not lower the cost is rejected and the following ones are damped Levenberg-Marquardt
+style (``s / (s^2 + lam s_max^2)`` on the singular values, ``lam`` updated from the ratio of
+actual to predicted decrease as in Nielsen's rule): the 2-cable elbow is conditioned badly
+enough (condition number ~1e4) for plain Gauss-Newton to diverge on noisy lengths. The
+initial states come from the forward kinematics of the nominal model.
 
 Identifiability and gauge. The reduced Jacobian ``[P_k J_theta,k]`` (stacked over the poses;
 its rank equals the rank of the joint Jacobian minus ``dof m``) tells which parameter
@@ -57,8 +62,8 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, Module
-from ..calibration.linear import default_rcond, min_norm_lstsq
-from ..identifiability import _readable_basis, format_combination
+from ..calibration.linear import default_rcond
+from ..identifiability import format_combination, sparse_basis
 from ._linalg import small_inv
 from ._results import select
 from .cables import _length_jacobian, _points, cable_forward_kinematics, require_cables
@@ -143,7 +148,8 @@ def _linearise(module: Module, theta: Array, x: Array, lengths: Array):
 def _eliminate(Jp: Array, Jq: Array, r: Array):
     """Project out the state directions pose by pose: reduced ``(m n, 7n)``, ``(m n,)``."""
     G = jnp.einsum("mni,mnj->mij", Jq, Jq)
-    Ginv = small_inv(G)
+    eye = jnp.eye(G.shape[-1], dtype=G.dtype)
+    Ginv = small_inv(G + 1e-12 * jnp.trace(G, axis1=-2, axis2=-1)[:, None, None] * eye)
     Pk = jnp.eye(Jq.shape[1], dtype=Jq.dtype) - jnp.einsum("mni,mij,mkj->mnk", Jq, Ginv, Jq)
     M = jnp.einsum("mnk,mkp->mnp", Pk, Jp)
     y = -jnp.einsum("mnk,mk->mn", Pk, r)
@@ -239,7 +245,8 @@ class SelfCalibrationSolution(eqx.Module):
         residual_rms: RMS length residual at the solution, mm.
         rms_history: RMS residual before each iteration and after the last ``(max_it + 1,)``,
             NaN past the end.
-        step_norm: norm of each parameter step (mm) ``(max_iterations,)``, NaN past the end.
+        step_norm: norm of each accepted parameter step (mm; 0 for a rejected one)
+            ``(max_iterations,)``, NaN past the end.
         iterations: number of steps taken.
         rank: numerical rank of the reduced Jacobian at the solution.
         singular_values: its singular values ``(7 n,)``, decreasing.
@@ -267,8 +274,9 @@ def self_calibrate(
     lengths: ArrayLike,
     *,
     initial_states: ArrayLike | None = None,
-    max_iterations: int = 30,
+    max_iterations: int = 200,
     tol: float = 1e-10,
+    ftol: float = 1e-10,
     rcond: float | None = None,
     throw: bool = True,
 ) -> SelfCalibrationSolution:
@@ -281,6 +289,10 @@ def self_calibrate(
             nominal module from ``lengths``.
         max_iterations: Gauss-Newton iteration cap (static).
         tol: stop once the parameter step (mm) and the state step (rad or mm) are below it.
+        ftol: ... or once an accepted step lowers the cost by less than this fraction of it: the
+            change of chi^2 is then ~``ftol`` times the residual degrees of freedom, a parameter
+            motion far below the estimate's standard deviation (the 2-cable elbow's noisy
+            problem otherwise crawls along a flat valley for hundreds of steps).
         rcond: relative singular-value cut-off of the minimum-norm step (default
             :func:`cdra_jax.calibration.default_rcond`).
         throw: raise at run time when the result is not successful (use ``False`` under vmap).
@@ -315,35 +327,54 @@ def self_calibrate(
     spherical = module.kind == "spherical"
     nan = jnp.asarray(jnp.nan, dtype)
 
+    cut = default_rcond(dtype) if rcond is None else rcond
+
     def rms_of(theta, x):
         r, _, _ = _linearise(module, theta, x, lengths)
         return jnp.sqrt(jnp.mean(r * r))
 
     def cond(carry):
-        k, _, _, _, _, done, ok = carry
+        k, _, _, _, _, _, _, done, ok = carry
         return (k < max_iterations) & ~done & ok
 
     def body(carry):
-        k, theta, x, steps, rmss, _, _ = carry
+        k, theta, x, lam, nu, steps, rmss, _, _ = carry
         r, Jp, Jq = _linearise(module, theta, x, lengths)
+        cost = jnp.mean(r * r)
         M, y, Ginv = _eliminate(Jp, Jq, r)
-        dtheta, _, _ = min_norm_lstsq(M, y, rcond)
+        U, sv, Vt = jnp.linalg.svd(M, full_matrices=False)
+        keep = sv > cut * sv[0]
+        # Levenberg-Marquardt damping of the minimum-norm step (lam = 0: Gauss-Newton)
+        f = jnp.where(keep, sv / jnp.where(keep, sv * sv + lam * sv[0] ** 2, 1.0), 0.0)
+        dtheta = jnp.einsum("ji,j->i", Vt, f * jnp.einsum("rj,r->j", U, y))
         rk = r + jnp.einsum("mnp,p->mn", Jp, dtheta)
         dx = -jnp.einsum("mij,mnj,mn->mi", Ginv, Jq, rk)
         theta_new = theta + dtheta
-        if spherical:
-            x_new = lie.so3_exp(dx) @ x
-        else:
-            x_new = x + dx
+        x_new = lie.so3_exp(dx) @ x if spherical else x + dx
+        cost_new = rms_of(theta_new, x_new) ** 2
+        pred = jnp.mean((rk + jnp.einsum("mni,mi->mn", Jq, dx)) ** 2)
+        accept = jnp.isfinite(cost_new) & (cost_new <= cost * (1 + 1e-12) + 1e-30)
+        theta = jnp.where(accept, theta_new, theta)
+        x = jnp.where(accept, x_new, x)
+        # Nielsen's update of the damping from the gain ratio actual / predicted decrease
+        rho = (cost - cost_new) / jnp.maximum(cost - pred, 1e-300)
+        shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
+        # (plain Gauss-Newton, lam = 0, until a step fails)
+        lam = jnp.where(accept, lam * shrink, jnp.maximum(lam * nu, 1e-6))
+        lam = jnp.where(lam < 1e-12, 0.0, lam)
+        nu = jnp.where(accept, 2.0, 2.0 * nu)
         step = jnp.linalg.norm(dtheta)
-        done = (step < tol) & (jnp.max(jnp.abs(dx)) < tol)
-        ok = jnp.isfinite(step) & jnp.all(jnp.isfinite(dx))
+        flat = accept & (cost - cost_new <= ftol * cost)
+        done = ((step < tol) & (jnp.max(jnp.abs(dx)) < tol)) | flat
+        ok = jnp.isfinite(step) & jnp.all(jnp.isfinite(dx)) & (lam < 1e20)
         return (
             k + 1,
-            theta_new,
-            x_new,
-            steps.at[k].set(step),
-            rmss.at[k].set(jnp.sqrt(jnp.mean(r * r))),
+            theta,
+            x,
+            lam,
+            nu,
+            steps.at[k].set(jnp.where(accept, step, 0.0)),
+            rmss.at[k].set(jnp.sqrt(cost)),
             done,
             ok,
         )
@@ -353,19 +384,20 @@ def self_calibrate(
         jnp.asarray(0),
         nominal,
         x0,
+        jnp.asarray(0.0, dtype),
+        jnp.asarray(2.0, dtype),
         jnp.full((max_iterations,), nan),
         jnp.full((max_iterations + 1,), nan),
         jnp.asarray(False),
         finite_in,
     )
-    k, theta, x, steps, rmss, done, ok = jax.lax.while_loop(cond, body, init)
+    k, theta, x, _, _, steps, rmss, done, ok = jax.lax.while_loop(cond, body, init)
     theta, x = _fix_gauge(module, nominal, theta, x)
     rms = rms_of(theta, x)
     rmss = rmss.at[k].set(rms)
     r, Jp, Jq = _linearise(module, theta, x, lengths)
     M, _, _ = _eliminate(Jp, Jq, r)
     s = jnp.linalg.svd(M, compute_uv=False)
-    cut = default_rcond(dtype) if rcond is None else rcond
     rank = jnp.sum(s > cut * s[0])
     ok = ok & jnp.isfinite(rms)
     result = select(
@@ -638,7 +670,7 @@ def analyze_self_calibration(
             B = B - Qs @ (Qs.T @ B)
             U, sv, _ = np.linalg.svd(B, full_matrices=False)
             B = U[:, : null.shape[0] - len(vecs)]
-        for row_vec in _readable_basis(B):
+        for row_vec in sparse_basis(B):
             words.append(format_combination(row_vec, names))
     cond = float(s_full[0] / s_full[rank - 1]) if rank else float("inf")
     return SelfCalibrationReport(

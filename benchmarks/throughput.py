@@ -1,0 +1,340 @@
+"""Monte-Carlo throughput of the calibration solvers on the paper's problem (Section V).
+
+The problem: the default CDRA (24 parameters), ``m`` = 15 calibration poses, preset frame errors
+uniform in +-1 mm / +-0.05 rad per component (``d_v``, ``d_w`` of Section V), noise-free
+measurements unless ``--noise`` is given. All problems are generated once with
+:func:`cdra_jax.simulation.simulate_trial` under ``vmap`` and every solver gets the same ones:
+
+(a) ``paper``: ``jax.jit(jax.vmap(calibrate_paper(..., throw=False)))`` over the batch;
+(b) ``lm``: the same with :func:`cdra_jax.calibrate_lm` (optimistix Levenberg-Marquardt);
+(c) ``numpy``: a plain NumPy loop over trials (``benchmarks/baselines.py``: Rodrigues exp,
+    Eq. 27 log, Eq. 25 adjoint, per-pose stacking, ``np.linalg.lstsq``), the reference of
+    the ratios; ``numpy_vec`` is the same algorithm batched over the poses of a trial;
+(d) ``scipy``: ``scipy.optimize.least_squares`` per trial on the stacked Eq. 7 residual.
+
+JAX solvers are timed on the whole batch: the first call (trace + compile + run) is reported
+apart from the steady state (median of ``--repeats`` calls); the compile time alone is measured
+with ``jit(...).lower(...).compile()``. The baselines are timed on a subset
+(``--baseline-trials``, default ``min(N, 200)``) split into 5 chunks; the per-trial time is the
+median over chunks. All of this happens in one process, side by side, so that a shared machine
+slows all of them alike. The sanity column is the largest difference of the recovered ``base``
+and ``tool`` error twists (the identifiable frames) from those of the paper solver, and from the
+preset errors.
+
+Usage::
+
+    python benchmarks/throughput.py --trials 10000            # the table
+    python benchmarks/throughput.py --trials 10000 --json     # ... and JSON on the last line
+    python benchmarks/throughput.py --scaling                 # trials/s against N and m
+
+The script enables float64 (``--dtype float32`` to compare) and runs on whatever
+``jax.devices()`` gives (CPU here; a GPU where jax finds one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import baselines  # noqa: E402
+
+from cdra_jax import NoiseModel, calibrate_lm, calibrate_paper, default_arm  # noqa: E402
+from cdra_jax.simulation import simulate_trial  # noqa: E402
+
+SOLVERS = ("paper", "lm", "numpy", "numpy_vec", "scipy")
+_N_CHUNKS = 5
+
+
+# --------------------------------------------------------------------------- problems
+def make_problems(arm, n_trials: int, m: int, noise: NoiseModel | None, seed: int = 0):
+    """``(q (N, m, dof), measured (N, m, 4, 4), preset errors (N, K+1, 6))`` as NumPy arrays."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), n_trials)
+    sim = jax.jit(
+        jax.vmap(lambda k: simulate_trial(k, arm, m, d_v=1.0, d_w=0.05, noise=noise, m_verify=1))
+    )
+    q, T, _, _, X = sim(keys)
+    k1 = len(arm.frame_names)
+    return np.asarray(q), np.asarray(T), np.asarray(X).reshape(n_trials, k1, 6)
+
+
+# --------------------------------------------------------------------------- timing
+def _block(x):
+    return jax.block_until_ready(x)
+
+
+def time_jax(solve: Callable, q: np.ndarray, T: np.ndarray, repeats: int) -> dict:
+    """Compile time, first-call time and steady-state median of a jitted batched solver."""
+    qj, Tj = jnp.asarray(q), jnp.asarray(T)
+    _block((qj, Tj))
+    fn = jax.jit(jax.vmap(solve))
+    t0 = time.perf_counter()
+    compiled = fn.lower(qj, Tj).compile()
+    compile_s = time.perf_counter() - t0
+    fresh = jax.jit(jax.vmap(solve))  # a separate jit: its first call traces and compiles again
+    t0 = time.perf_counter()
+    _block(fresh(qj, Tj))
+    first_s = time.perf_counter() - t0
+    times = []
+    sol = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sol = _block(compiled(qj, Tj))
+        times.append(time.perf_counter() - t0)
+    steady = statistics.median(times)
+    return dict(
+        compile_s=compile_s,
+        first_call_s=first_s,
+        steady_s=steady,
+        trials_per_s=q.shape[0] / steady,
+        all_s=times,
+        solution=sol,
+    )
+
+
+def time_per_trial(run_one: Callable[[int], dict], n: int) -> dict:
+    """Run ``run_one(i)`` for ``i < n`` in chunks; median per-trial time over the chunks."""
+    bounds = np.linspace(0, n, min(_N_CHUNKS, n) + 1).astype(int)
+    per_trial, outs = [], []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        t0 = time.perf_counter()
+        outs.extend(run_one(i) for i in range(a, b))
+        per_trial.append((time.perf_counter() - t0) / (b - a))
+    med = statistics.median(per_trial)
+    return dict(per_trial_s=med, trials_per_s=1.0 / med, chunks_s=per_trial, outputs=outs)
+
+
+# --------------------------------------------------------------------------- one run
+def run(args) -> dict:
+    arm = default_arm()
+    dtype = jnp.float64 if args.dtype == "float64" else jnp.float32
+    arm = arm.with_frames(jnp.asarray(arm.frames, dtype))
+    noise = NoiseModel(args.noise_pos_mm, args.noise_rot_rad) if args.noise else None
+    q, T, X_true = make_problems(arm, args.trials, args.poses, noise, args.seed)
+    q, T = q.astype(dtype), T.astype(dtype)
+    n_base = min(args.trials, args.baseline_trials)
+    k_last = len(arm.frame_names) - 1
+    ident = [0, k_last]  # base and tool: identifiable frames
+
+    res: dict = {}
+    print(f"# devices: {jax.devices()}", flush=True)
+    print(
+        f"# problem: CDRA, m={args.poses} poses, n_params={arm.n_params}, N={args.trials} "
+        f"trials, noise={'none' if noise is None else (args.noise_pos_mm, args.noise_rot_rad)}"
+        f", {args.dtype}",
+        flush=True,
+    )
+    for name, fn in (("paper", calibrate_paper), ("lm", calibrate_lm)):
+        if name not in args.solvers:
+            continue
+        r = time_jax(lambda qq, TT, fn=fn: fn(arm, qq, TT, throw=False), q, T, args.repeats)
+        sol = r.pop("solution")
+        r["errors"] = np.asarray(sol.errors)
+        r["converged"] = float(np.mean(np.asarray(sol.converged)))
+        r["iterations_mean"] = float(np.mean(np.asarray(sol.iterations)))
+        res[name] = r
+        print(
+            f"# {name}: compile {r['compile_s']:.2f} s, first call {r['first_call_s']:.2f} s, "
+            f"steady {r['steady_s']:.3f} s",
+            flush=True,
+        )
+
+    frames0 = np.asarray(arm.frames, dtype=float)
+    kinds = baselines.arm_kinds(arm)
+    base_fns = {
+        "numpy": baselines.calibrate_numpy,
+        "numpy_vec": baselines.calibrate_numpy_vectorized,
+        "scipy": baselines.calibrate_scipy,
+    }
+    qb, Tb = q[:n_base].astype(float), T[:n_base].astype(float)
+    for name, fn in base_fns.items():
+        if name not in args.solvers:
+            continue
+
+        # The module poses are part of each trial's work, as they are for the JAX solvers.
+        def one(i, fn=fn):
+            return fn(frames0, baselines.module_poses(kinds, qb[i]), Tb[i])
+
+        r = time_per_trial(one, n_base)
+        outs = r.pop("outputs")
+        r["errors"] = np.stack([o["errors"] for o in outs])
+        r["converged"] = float(np.mean([o["converged"] for o in outs]))
+        r["iterations_mean"] = float(np.mean([o["iterations"] for o in outs]))
+        res[name] = r
+        print(f"# {name}: {r['per_trial_s'] * 1e3:.2f} ms/trial", flush=True)
+
+    ref = res["paper"]["errors"][:n_base] if "paper" in res else None
+    for r in res.values():
+        e = r["errors"][:n_base]
+        r["maxdiff_vs_paper"] = (
+            float(np.max(np.abs(e[:, ident] - ref[:, ident]))) if ref is not None else float("nan")
+        )
+        r["maxdiff_vs_preset"] = float(np.max(np.abs(e[:, ident] - X_true[:n_base][:, ident])))
+    return dict(results=res, n_base=n_base, arm=arm)
+
+
+def print_table(res: dict, n_base: int, n_trials: int) -> None:
+    ref = res["numpy"]["trials_per_s"] if "numpy" in res else float("nan")
+    head = (
+        f"{'solver':10s} {'trials':>7s} {'trials/s':>10s} {'vs numpy':>9s} {'compile s':>10s} "
+        f"{'first s':>8s} {'conv':>5s} {'iters':>6s} {'d(base,tool) vs paper':>22s} "
+        f"{'vs preset':>10s}"
+    )
+    print(head)
+    print("-" * len(head))
+    for name in SOLVERS:
+        if name not in res:
+            continue
+        r = res[name]
+        n = n_trials if name in ("paper", "lm") else n_base
+        comp = f"{r['compile_s']:10.2f}" if "compile_s" in r else f"{'-':>10s}"
+        first = f"{r['first_call_s']:8.2f}" if "first_call_s" in r else f"{'-':>8s}"
+        print(
+            f"{name:10s} {n:7d} {r['trials_per_s']:10.1f} {r['trials_per_s'] / ref:9.1f} "
+            f"{comp} {first} {r['converged']:5.2f} {r['iterations_mean']:6.2f} "
+            f"{r['maxdiff_vs_paper']:22.2e} {r['maxdiff_vs_preset']:10.2e}"
+        )
+
+
+def summary_json(res: dict, args, n_base: int) -> dict:
+    out: dict = dict(
+        trials=args.trials,
+        baseline_trials=n_base,
+        poses=args.poses,
+        dtype=args.dtype,
+        noise=bool(args.noise),
+        devices=[str(d) for d in jax.devices()],
+        jax_version=jax.__version__,
+    )
+    ref = res.get("numpy", {}).get("trials_per_s", float("nan"))
+    for name, r in res.items():
+        out[f"trials_per_s_{name}"] = r["trials_per_s"]
+        out[f"maxdiff_vs_paper_{name}"] = r["maxdiff_vs_paper"]
+        out[f"maxdiff_vs_preset_{name}"] = r["maxdiff_vs_preset"]
+        out[f"converged_{name}"] = r["converged"]
+        if "compile_s" in r:
+            out[f"compile_s_{name}"] = r["compile_s"]
+            out[f"first_call_s_{name}"] = r["first_call_s"]
+        if name != "numpy":
+            out[f"ratio_{name}_vs_numpy"] = r["trials_per_s"] / ref
+    return out
+
+
+# --------------------------------------------------------------------------- scaling
+def scaling(args) -> dict:
+    """trials/s of the JAX solvers against the batch size N and the pose count m."""
+    arm = default_arm()
+    out: dict = dict(devices=[str(d) for d in jax.devices()], by_trials=[], by_poses=[])
+    solvers = [s for s in ("paper", "lm") if s in args.solvers]
+    fns = dict(paper=calibrate_paper, lm=calibrate_lm)
+    print(f"# devices: {jax.devices()}")
+    print("# trials/s against N (m = 15)")
+    print(f"{'N':>9s} " + " ".join(f"{s:>12s}" for s in solvers))
+    for n in args.scaling_trials:
+        q, T, _ = make_problems(arm, n, 15, None, args.seed)
+        row = dict(N=n)
+        for s in solvers:
+            if s == "lm" and n > args.lm_max_trials:
+                row[s] = None
+                continue
+            r = time_jax(lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False), q, T, args.repeats)
+            row[s] = r["trials_per_s"]
+            row[f"{s}_compile_s"] = r["compile_s"]
+        out["by_trials"].append(row)
+        print(f"{n:9d} " + " ".join(_fmt(row[s]) for s in solvers), flush=True)
+        del q, T
+    print(f"# trials/s against m (N = {args.scaling_n})")
+    print(f"{'m':>9s} " + " ".join(f"{s:>12s}" for s in solvers))
+    for m in args.scaling_poses:
+        q, T, _ = make_problems(arm, args.scaling_n, m, None, args.seed)
+        row = dict(m=m)
+        for s in solvers:
+            r = time_jax(lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False), q, T, args.repeats)
+            row[s] = r["trials_per_s"]
+            row[f"{s}_compile_s"] = r["compile_s"]
+        out["by_poses"].append(row)
+        print(f"{m:9d} " + " ".join(_fmt(row[s]) for s in solvers), flush=True)
+    return out
+
+
+def _fmt(v) -> str:
+    return f"{'-':>12s}" if v is None else f"{v:12.1f}"
+
+
+def machine() -> dict:
+    cpu = "unknown"
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if "model name" in line)
+    except (OSError, StopIteration):
+        pass
+    return dict(
+        cpu=cpu,
+        cores=os.cpu_count(),
+        python=platform.python_version(),
+        jax=jax.__version__,
+        numpy=np.__version__,
+        devices=[str(d) for d in jax.devices()],
+    )
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--trials", type=int, default=10_000, help="batch size N of the JAX solvers")
+    p.add_argument("--poses", type=int, default=15, help="calibration poses per trial (m)")
+    p.add_argument("--baseline-trials", type=int, default=200, help="subset for numpy/scipy")
+    p.add_argument("--repeats", type=int, default=5, help="steady-state calls of JAX solvers")
+    p.add_argument("--noise", action="store_true", help="add measurement noise")
+    p.add_argument("--noise-pos-mm", type=float, default=0.08, help="position noise std (mm)")
+    p.add_argument("--noise-rot-rad", type=float, default=1e-3, help="rotation noise std (rad)")
+    p.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    p.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=SOLVERS)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
+    p.add_argument("--scaling", action="store_true", help="trials/s against N and m instead")
+    p.add_argument(
+        "--scaling-trials",
+        type=int,
+        nargs="+",
+        default=[100, 1_000, 10_000, 100_000, 1_000_000],
+    )
+    p.add_argument("--scaling-poses", type=int, nargs="+", default=[5, 10, 15, 30, 60, 100, 200])
+    p.add_argument("--scaling-n", type=int, default=10_000, help="N of the pose-count sweep")
+    p.add_argument(
+        "--lm-max-trials", type=int, default=100_000, help="largest N the LM scaling runs"
+    )
+    args = p.parse_args(argv)
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+
+    info = machine()
+    print(f"# machine: {info}", flush=True)
+    if args.scaling:
+        out = scaling(args)
+        out["machine"] = info
+        if args.json:
+            print(json.dumps(out))
+        return out
+    r = run(args)
+    print_table(r["results"], r["n_base"], args.trials)
+    out = summary_json(r["results"], args, r["n_base"])
+    out["machine"] = info
+    if args.json:
+        print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
