@@ -251,8 +251,15 @@ def diagnose(
         proj = stats.project(Jc, UD)
         Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid)
         A = np.hstack([D, Jc])
-        gain = stats.heldout(r, A, fold).loglik - ho0.loglik if proj.df else None
-        evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A}
+        gain = merit = None
+        if proj.df:
+            ho = stats.heldout(r, A, fold)
+            gain = ho.loglik - ho0.loglik
+            # what selection ranks: the held-out log-likelihood gain, but no more than half the
+            # drop of the plain held-out sum of squares (a flexible candidate that predicts
+            # with a wide covariance gains likelihood without predicting better)
+            merit = min(gain, 0.5 * (ho0.sum_of_squares - ho.sum_of_squares))
+        evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A, "merit": merit}
     groups: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
     for c, why in table:
         groups.setdefault((c.name, c.location), []).append((c, why))
@@ -317,23 +324,41 @@ def diagnose(
     best: Candidate | None = None
     ho1: stats.HeldOut | None = None
     significant = [
-        chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["gain"] or -1.0) > 0
+        chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["merit"] or -1.0) > 0
     ]
     if mismatch and significant:
-        best = max(significant, key=lambda c: evals[c]["gain"])
+        best = max(significant, key=lambda c: evals[c]["merit"])
         same = [c for c in live if (c.name, c.location) == (best.name, best.location)]
         forms, gains = _refinements(best, same, cols, r, D, J, fold)
         best = forms[0]
-        refit_info, parameters, ho1, p_after = _refit(
-            forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale
-        )
+        args = (fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale)
+        refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(forms, cols, *args)
+        # further forms, judged on the model linearised at the refit (a large effect moves
+        # the solution far from the geometric fit, where the first linearisation was made)
+        while len(forms) <= MAX_REFINEMENTS:
+            free = np.concatenate([np.arange(n_geo), n_geo + _columns(forms, cols)])
+            blocks = {c: J1[:, n_geo + _columns([c], cols)] for c in same if c not in forms}
+            base = (ho1.loglik, ho1.sum_of_squares)
+            found = _best_addition(r1, J1[:, free], blocks, fold, base)
+            if found is None:
+                break
+            forms.append(found[0])
+            gains.append(float(found[1][0] - base[0]))
+            refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(
+                forms, cols, *args, y_start=y1
+            )
         refit_info["forms"] = [
             {"variant": c.variant or None, "heldout_gain": g, "n_params": len(c.parameters(arm))}
             for c, g in zip(forms, gains, strict=True)
         ]
         after = _errors(ho1, used_noise, p_after)
-        excess0 = ho0.statistic - N
-        explained = 1.0 - (ho1.statistic - N) / excess0 if excess0 > 0 else 1.0
+        explained = min(
+            _explained(ho0.statistic - N, ho1.statistic - N),
+            _explained(
+                ho0.sum_of_squares - ho0.expected_sum_of_squares,
+                ho1.sum_of_squares - ho1.expected_sum_of_squares,
+            ),
+        )
         refit_info["explained_fraction"] = float(explained)
         if given and p_after is not None and p_after < alpha and explained < EXPLAINED_MIN:
             effect_name = "unattributed"
@@ -429,78 +454,108 @@ def diagnose(
     return diag
 
 
+def _explained(excess_before: float, excess_after: float) -> float:
+    """The fraction of the excess held-out misfit (over its expectation) a refit removes."""
+    return 1.0 - excess_after / excess_before if excess_before > 0 else 1.0
+
+
 def _columns(forms: Sequence[Candidate], cols: dict) -> np.ndarray:
     return np.concatenate([np.arange(cols[c].start, cols[c].stop) for c in forms])
 
 
+def _score(r: np.ndarray, A: np.ndarray, fold: np.ndarray) -> tuple[float, float]:
+    """Held-out ``(log-likelihood, plain sum of squares)`` of the linear model ``r ~ A x``."""
+    ho = stats.heldout(r, A, fold)
+    return ho.loglik, ho.sum_of_squares
+
+
+def _pays(before: tuple[float, float], after: tuple[float, float], k: int) -> bool:
+    """Whether ``k`` more parameters pay for themselves: the held-out log-likelihood rises by
+    more than :data:`REFINE_GAIN_PER_PARAM` per parameter *and* the plain held-out sum of
+    squares falls by twice that (it is twice a log-likelihood), so that a model that merely
+    predicts with a wider covariance never pays."""
+    return (
+        after[0] - before[0] > REFINE_GAIN_PER_PARAM * k
+        and before[1] - after[1] > 2.0 * REFINE_GAIN_PER_PARAM * k
+    )
+
+
+def _best_addition(r, A, blocks, fold, base):
+    """Of the column blocks ``{form: (6m, k)}`` that pay when added to ``A``, the one with the
+    largest held-out gain per parameter: ``(form, score)``, or ``None``."""
+    trials = []
+    for c, B in blocks.items():
+        sc = _score(r, np.hstack([A, B]), fold)
+        if _pays(base, sc, B.shape[1]):
+            trials.append(((sc[0] - base[0]) / B.shape[1], sc, c))
+    if not trials:
+        return None
+    _, sc, c = max(trials, key=lambda t: t[0])
+    return c, sc
+
+
 def _refinements(best, same, cols, r, D, J, fold):
     """The forms of ``best``'s effect at its location (its variants and refinements, ``same``)
-    that the refit uses, chosen by the cross-validated log-likelihood of the linearised model.
+    to start the refit with, chosen on the linearised model at the geometric fit.
 
     The start is the tested form ``best``, or the single form with the largest held-out
-    log-likelihood where that beats it by more than :data:`REFINE_GAIN_PER_PARAM` per
-    parameter (a
-    refinement such as a settling drift may replace the form it refines). Then forward
-    selection: the form with the largest held-out gain per parameter joins while that gain exceeds
-    :data:`REFINE_GAIN_PER_PARAM`, up to :data:`MAX_REFINEMENTS` further forms. A real effect
-    simulated in a richer form than any single candidate (a stiffness that changes with load,
-    a different stiffness per cable) is captured by the sum of forms; on a pure candidate the
-    extra forms gain nothing on held-out poses and stay out. Returns the forms and the held-out
-    gain each added over the geometric fit (the first) or over the forms before it.
+    log-likelihood where that one pays against it (:func:`_pays`; a refinement such as a
+    settling drift may replace the form it refines). Then forward selection
+    (:func:`_best_addition`). The refit adds further forms on the model linearised at its own
+    solution (:func:`diagnose`), up to :data:`MAX_REFINEMENTS` in all. Returns the forms and
+    the held-out log-likelihood gain each added (the first: over the geometric fit).
     """
-
-    def loglik(forms):
-        return stats.heldout(r, np.hstack([D, J[:, _columns(forms, cols)]]), fold).loglik
-
+    size = lambda c: cols[c].stop - cols[c].start  # noqa: E731
     geometric = stats.heldout(r, D, fold).loglik
-    singles = {c: loglik([c]) for c in same}
-    start = max(same, key=lambda c: singles[c]) if same else best
-    k_start = cols[start].stop - cols[start].start
-    if best in singles and singles[start] - singles[best] <= REFINE_GAIN_PER_PARAM * k_start:
-        start = best  # the tested form unless another one predicts clearly better
-    forms = [start]
-    base = singles.get(start, loglik(forms))
-    gains = [float(base - geometric)]
+    singles = {c: _score(r, np.hstack([D, J[:, cols[c]]]), fold) for c in same}
+    forms = [best]
+    base = singles[best] if best in singles else _score(r, np.hstack([D, J[:, cols[best]]]), fold)
+    rival = max(same, key=lambda c: singles[c][0]) if same else best
+    if rival is not best and _pays(base, singles[rival], size(rival)):
+        forms, base = [rival], singles[rival]
+    gains = [float(base[0] - geometric)]
     for _ in range(MAX_REFINEMENTS):
-        trials = []
-        for c in same:
-            if c in forms:
-                continue
-            k = cols[c].stop - cols[c].start
-            ll = loglik([*forms, c])
-            trials.append(((ll - base) / k, ll - base, ll, c))
-        trials = [t for t in trials if t[0] > REFINE_GAIN_PER_PARAM]
-        if not trials:
+        A = np.hstack([D, J[:, _columns(forms, cols)]])
+        blocks = {c: J[:, cols[c]] for c in same if c not in forms}
+        found = _best_addition(r, A, blocks, fold, base)
+        if found is None:
             break
-        _, gain, base, c = max(trials, key=lambda t: t[0])
+        c, sc = found
+        gains.append(float(sc[0] - base[0]))
         forms.append(c)
-        gains.append(float(gain))
+        base = sc
     return forms, gains
 
 
-def _refit(forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale):
+def _refit(
+    forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale, y_start=None
+):
     """Joint LM refit of the frame errors and the parameters of ``forms`` (the selected
-    candidate first, then the forms :func:`_refinements` added); returns
-    ``(info, parameters, heldout, p_after)``. Parameters of added forms are named
-    ``<variant>:<name>``."""
+    candidate first, then the forms added to it), from ``y_start`` (all entries of ``y``) or
+    from the linearised fit at the geometric solution. Returns ``(info, parameters, heldout,
+    p_after, y, r1, J1)`` with ``y`` all entries, ``r1`` the whitened residual and ``J1`` the
+    Jacobian of every column at the refit (for further forms). Parameters of added forms are
+    named ``<variant>:<name>``."""
     n_geo = D.shape[1]
     sel = _columns(forms, cols)
     free = np.concatenate([np.arange(n_geo), n_geo + sel])
-    A = np.hstack([D, J[:, sel]])
-    y_lin, _ = _linear_fit(r, A, 1.0)
-    n_all = n_geo + J.shape[1]
-    y0 = np.zeros(n_all)
-    y0[free] = y_lin
-    y, ok, steps = joint_refit(y0, free, fit_arm, q, T, G, F_all)
-    r1, J1 = residual_and_jacobian(jnp.asarray(y, q.dtype), fit_arm, q, T, G, F_all)
+    if y_start is None:
+        y_lin, _ = _linear_fit(r, np.hstack([D, J[:, sel]]), 1.0)
+        y0 = np.zeros(n_geo + J.shape[1])
+        y0[free] = y_lin
+    else:
+        y0 = np.array(y_start, float)
+    y_all, ok, steps = joint_refit(y0, free, fit_arm, q, T, G, F_all)
+    r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, q.dtype), fit_arm, q, T, G, F_all)
     r1 = np.asarray(r1, float) / sigma_scale
-    J1 = np.asarray(J1, float)[:, free] / sigma_scale
+    J1_all = np.asarray(J1_all, float) / sigma_scale
+    J1 = J1_all[:, free]
     U1 = stats.orthonormal_basis(J1)
     dof = r1.size - U1.shape[1]
     chi2 = float(r1 @ r1)
     inflate = max(1.0, chi2 / max(dof, 1))
     _, sd = _linear_fit(r1, J1, inflate)
-    y = np.asarray(y, float)[free]
+    y = np.asarray(y_all, float)[free]
     params: dict[str, ParameterEstimate] = {}
     at = n_geo
     for i, c in enumerate(forms):
@@ -509,7 +564,11 @@ def _refit(forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigm
         at += k
         params.update(est if i == 0 else {f"{c.variant}:{n}": v for n, v in est.items()})
     ho1 = stats.heldout(r1, J1, fold, with_null=given)
-    p_after = ho1.p_value() if given else None
+    # Q and the plain sum of squares, Bonferroni: a refit with many parameters widens its
+    # predictive covariance, which deflates Q but not |e|^2
+    p_after = None
+    if given:
+        p_after = min(1.0, 2.0 * min(ho1.p_value(), ho1.p_value_sum_of_squares()))
     info = {
         "candidate": forms[0].label,
         "converged": bool(ok),
@@ -521,7 +580,7 @@ def _refit(forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigm
             name: [float(v) for v in y[6 * j : 6 * j + 6]] for j, name in enumerate(arm.frame_names)
         },
     }
-    return info, params, ho1, p_after
+    return info, params, ho1, p_after, np.asarray(y_all, float), r1, J1_all
 
 
 def _locate(probes, cols, r, J, UD, df_resid, alpha):

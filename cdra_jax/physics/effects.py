@@ -237,6 +237,10 @@ def _per_cable_words(values: Mapping[str, tuple[float, float, float]], unit: str
     return "; ".join(f"{n.split('_')[-1]} {_interval(values, n, unit)}" for n in values)
 
 
+POWER_TENSION_N = 100.0
+"""Reference tension (N) of the power-law cable stretch refinements."""
+
+
 class CableElasticity(_CableEffect):
     """Cable stretch ``c_i t_i`` (``t``: tensions holding the arm) mapped to a module-state
     change by least squares over the cables, ``J^+ (c t)``.
@@ -250,15 +254,18 @@ class CableElasticity(_CableEffect):
     * ``"per_cable"``: one compliance per cable (cables routed over different lengths have
       different stiffnesses), holding tensions;
     * ``"quadratic"`` (a refinement, never tested alone): the second-order term ``c2 t_i^2`` of
-      a tension-dependent stiffness (negative for a cable that stiffens as it is loaded).
+      a tension-dependent stiffness (negative for a cable that stiffens as it is loaded);
+    * ``"power0.5"``, ``"power0.75"`` (refinements): a power-law stretch
+      ``c t_ref (t_i / t_ref)^p`` (``t_ref`` = :data:`POWER_TENSION_N`), the usual empirical
+      law of a rope or braided cable that stiffens as its strands bed in.
     """
 
     name = "cable_elasticity"
     needs = "cables, masses (tensions from the statics), pretension"
     summary = "cable stretch proportional to tension (pretension plus gravity load)"
 
-    FORMS = ("holding", "pretension_share", "per_cable", "quadratic")
-    REFINEMENTS = ("quadratic",)
+    FORMS = ("holding", "pretension_share", "per_cable", "quadratic", "power0.5", "power0.75")
+    REFINEMENTS = ("quadratic", "power0.5", "power0.75")
 
     def __init__(self, form: str = "holding"):
         self._set_form(form)
@@ -284,6 +291,16 @@ class CableElasticity(_CableEffect):
                     -high / t0,
                     high / t0,
                     "change of the cable compliance per newton of tension",
+                ),
+            )
+        if self.form.startswith("power"):
+            return (
+                ParameterSpec(
+                    f"axial_compliance_{self.form}",
+                    "mm/N",
+                    0.0,
+                    high,
+                    f"stretch per newton at {POWER_TENSION_N:g} N of a power-law cable",
                 ),
             )
         return (ParameterSpec("axial_compliance", "mm/N", 0.0, high, desc),)
@@ -313,9 +330,19 @@ class CableElasticity(_CableEffect):
             t = distribute_tensions(A, -load, module_floor(mod)).tensions  # (m, n) N
         if self.form == "quadratic":
             t = t * t
+        elif self.form.startswith("power"):
+            p = float(self.form.removeprefix("power"))
+            t = POWER_TENSION_N * (jnp.maximum(t, 0.0) / POWER_TENSION_N) ** p
         return self._length_step_features(arm, q, i, t)
 
     def describe(self, location, values):
+        power = [n for n in values if n.startswith("axial_compliance_power")]
+        if power:
+            return (
+                f"the {location} module's cables stretch under load, stiffening as they are "
+                f"loaded (stretch ~ tension^{power[0].removeprefix('axial_compliance_power')}): "
+                f"compliance at {POWER_TENSION_N:g} N {_interval(values, power[0], 'mm/N')}"
+            )
         if "axial_compliance" not in values:
             return (
                 f"the {location} module's cables stretch under load (each its own compliance): "
@@ -517,7 +544,8 @@ class DrumPeriodicError(_CableEffect):
     out from home (lengths of the model's cable geometry, :func:`cable_lengths`); an eccentric
     or out-of-round drum (or a once-per-turn encoder error) makes the length actually paid out
     err by a Fourier series ``sum_k a_ik sin(k phi_i) + b_ik cos(k phi_i)`` over the harmonics
-    ``k`` (default 1 and 2: eccentricity and ovality), with its own phases on every drum. The
+    ``k`` (1: eccentricity, tested; 2: ovality, a refinement that joins the refit where it
+    pays), with its own phases on every drum. The
     module state then moves by the least-squares ``J^+ e`` over the cables (``J`` the length
     Jacobian). The drum radius is not in the model file: the vocabulary tries the radii of
     :data:`DRUM_RADII_MM` as variants (``"drum r=<mm>"``), each with ``2 n_harmonics n``
@@ -528,12 +556,13 @@ class DrumPeriodicError(_CableEffect):
     needs = "cables"
     summary = "transmission error periodic in a module angle (winch drum angle)"
 
-    def __init__(self, radius_mm: float = 10.0, harmonics: tuple[int, ...] = (1, 2)):
+    def __init__(self, radius_mm: float = 10.0, harmonics: tuple[int, ...] = (1,)):
         if not radius_mm > 0:
             raise ValueError(f"drum radius must be positive, got {radius_mm!r}")
         self.harmonics = _harmonics(harmonics)
         self.radius_mm = float(radius_mm)
         self.variant = f"drum r={self.radius_mm:g}mm k=" + ",".join(map(str, self.harmonics))
+        self.refinement = 1 not in self.harmonics  # overtones alone refine the fundamental
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -732,13 +761,16 @@ VOCABULARY: tuple[Effect, ...] = (
     CableElasticity("pretension_share"),
     CableElasticity("per_cable"),
     CableElasticity("quadratic"),
+    CableElasticity("power0.5"),
+    CableElasticity("power0.75"),
     CableScale("from_home"),
     CableScale("absolute"),
     CableScale("per_cable"),
     Backlash("state"),
     Backlash("rotation"),
     *(PeriodicError((k,)) for k in range(1, 7)),
-    *(DrumPeriodicError(r) for r in DRUM_RADII_MM),
+    *(DrumPeriodicError(r, (1,)) for r in DRUM_RADII_MM),
+    *(DrumPeriodicError(r, (2,)) for r in DRUM_RADII_MM),
     LinkBending(),
     ThermalDrift(),
     *(ThermalDrift(tau) for tau in WARMUP_TAUS_S),
