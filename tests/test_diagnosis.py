@@ -147,6 +147,21 @@ def test_injected_effect_is_found_where_it_is(name, location, variant, values):
         assert est.plausible
 
 
+def test_a_richer_form_is_refitted_and_reaches_the_noise_floor():
+    """A drift that settles (a refinement: never tested alone) is detected by the tested
+    drift-rate form and refitted in the settling form, which predicts held-out poses to the
+    noise floor; refinements never get a row of the candidate table."""
+    c = find("thermal_drift", "base", "warm-up tau=300s")
+    d = diagnose(base().arm, recordings(c, [1.0, -0.6, 0.4, 0.0, 1e-3, 0.0]), NOISE)
+    assert (d.effect, d.located_in) == ("thermal_drift", "base"), d.report
+    forms = [f["variant"] for f in d.details["refit"]["forms"]]
+    assert forms[0].startswith("warm-up"), forms
+    floor = d.details["noise_floor"]["delta_p_mm"]
+    assert d.heldout_before.delta_p_mm > 3 * floor
+    assert d.heldout_after.delta_p_mm < 1.2 * floor
+    assert not any(v.startswith("warm-up") for row in d.candidates for v in row.variants)
+
+
 def test_uniform_length_scale_is_absorbed():
     b = base()
     frames = jnp.asarray(b.actual.frames).at[:, :3, 3].multiply(1.01)
@@ -203,8 +218,7 @@ def test_cli_end_to_end(tmp_path, capsys):
         "residual_per_pose.png",
         "residual_vs_regressors.png",
     ]
-    assert main(argv) == 1  # no overwrite without --force
+    assert main(argv) == 1  # no overwrite without --force (refused before any work)
     assert "exists" in capsys.readouterr().err
-    assert main(argv + ["--force"]) == 0
     d = diagnose_files(None, data, 0.05, 0.0005)
     assert d.effect == "joint_compliance"

@@ -15,7 +15,7 @@ from cdra_jax.arm import Arm
 from cdra_jax.calibration import stacked_system
 from cdra_jax.diagnosis.model import residual_and_jacobian
 from cdra_jax.modules.cables import cable_forward_kinematics, cable_lengths
-from cdra_jax.modules.statics import holding_tensions
+from cdra_jax.modules.statics import gravity_torques, holding_tensions
 from cdra_jax.physics import (
     EFFECT_NAMES,
     Candidate,
@@ -78,6 +78,28 @@ def test_features_shapes_and_jacobians_finite():
     np.testing.assert_allclose(J[:, : b.arm.n_params], -D, atol=1e-9)
 
 
+def test_refinements_are_richer_forms_of_a_tested_effect():
+    """A refinement (never tested alone) refines an effect that has a tested form at the same
+    place; the quadratic joint compliance is the per-axis one scaled by the load."""
+    b = base()
+    tested = {(c.name, c.location) for c in b.everything if not c.effect.refinement}
+    refinements = [c for c in b.everything if c.effect.refinement]
+    assert {c.name for c in refinements} == {
+        "joint_compliance",
+        "cable_elasticity",
+        "periodic_error",
+        "thermal_drift",
+    }
+    assert all((c.name, c.location) in tested for c in refinements)
+    lin = find("joint_compliance", "wrist", "per_axis").features(b.arm, b.q, b.aux)
+    quad = find("joint_compliance", "wrist", "per_axis_quadratic").features(b.arm, b.q, b.aux)
+    load = jnp.linalg.norm(gravity_torques(b.arm, b.q, b.aux["payload_kg"])[:, 2], axis=-1)
+    assert float(load.min()) > 0
+    np.testing.assert_allclose(
+        quad.module_twist, lin.module_twist * load[:, None, None, None], rtol=1e-12, atol=1e-18
+    )
+
+
 def test_single_candidate_pure_function_matches_the_stacked_features():
     b = base()
     c = find("joint_compliance", "elbow")
@@ -128,10 +150,10 @@ def _platform_rotation(c: Candidate, arm, q, aux, value, i):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["cable_elasticity", "cable_scale"])
+@pytest.mark.parametrize("name", ["cable_elasticity", "cable_scale", "periodic_error"])
 def test_cable_effects_agree_with_cable_forward_kinematics(name):
-    """Oracle: the module state the stretched/scaled cable lengths give by the (nonlinear,
-    least-squares) cable forward kinematics of cdra_jax.modules."""
+    """Oracle: the module state the stretched/scaled/eccentric-drum cable lengths give by the
+    (nonlinear, least-squares) cable forward kinematics of cdra_jax.modules."""
     b = base()
     arm, q, aux = b.arm, b.q[:6], {k: v[:6] for k, v in b.aux.items()}
     mod = arm.modules[0]
@@ -139,10 +161,16 @@ def test_cable_effects_agree_with_cable_forward_kinematics(name):
     if name == "cable_elasticity":
         c, value = find(name, "shoulder"), 0.01  # mm/N: 100 N/mm cables
         lengths = cable_lengths(mod, qs) + value * holding_tensions(arm, q)["shoulder"].tensions
-    else:
+    elif name == "cable_scale":
         c, value = find(name, "shoulder", "from_home"), 0.01
         l0 = cable_lengths(mod, jnp.zeros_like(qs))
         lengths = l0 + (1 + value) * (cable_lengths(mod, qs) - l0)
+    else:  # an eccentric 10 mm drum per cable, sine and cosine amplitudes 0.2 mm
+        c, value = find(name, "shoulder", "drum r=10mm k=1"), 0.2
+        paid = cable_lengths(mod, qs) - cable_lengths(mod, jnp.zeros_like(qs))
+        phi = paid / 10.0  # drum angle, rad
+        wobble = jnp.sin(phi) + jnp.cos(phi)
+        lengths = cable_lengths(mod, qs) + value * wobble
     # stretched lengths are not a consistent set: least squares over the 6 cables
     fk = jax.jit(lambda L: cable_forward_kinematics(mod, L, initial=qs, residual_tol=1e3))(lengths)
     assert bool(jnp.all(fk.successful))
@@ -187,4 +215,7 @@ def test_backlash_and_drift_follow_their_auxiliaries():
     np.testing.assert_array_equal(f.state[:, j, 0], -b.aux["approach.elbow"])
     d = find("thermal_drift", "base").features(b.arm, b.q, b.aux)
     np.testing.assert_array_equal(d.frame_deflection[:, 0, 2, 2], b.aux["time_s"])
+    w = find("thermal_drift", "base", "warm-up tau=600s").features(b.arm, b.q, b.aux)
+    settled = 1.0 - np.exp(-np.asarray(b.aux["time_s"]) / 600.0)
+    np.testing.assert_allclose(w.frame_deflection[:, 0, 4, 4], settled, rtol=1e-12)
     assert Features.zeros(b.arm, 3, 2).state.shape == (3, b.arm.dof, 2)

@@ -48,6 +48,15 @@ LOCATE_MIN = 0.5
 """An unattributed misfit is placed where the best (rejected) candidate sits when that
 candidate removes at least this fraction of the excess; otherwise the generic probes place it."""
 
+REFINE_GAIN_PER_PARAM = 2.0
+"""A further form of the selected effect at the selected place (another variant, or a
+refinement such as a load-hardening term) joins the refit only when it raises the held-out
+log-likelihood by more than this many nats per added parameter (about the 2.5 % tail of the
+chance gain; see :func:`_refinements`)."""
+
+MAX_REFINEMENTS = 3
+"""At most this many further forms join the selected one."""
+
 COS_INDISTINGUISHABLE = 0.98
 REPEAT_TOL = 1e-6
 """Module states that agree within this (rad or mm, per entry) count as a repeated pose."""
@@ -133,6 +142,20 @@ def _physical(ho: stats.HeldOut, noise: NoiseModel) -> np.ndarray:
     return ho.residual * scale
 
 
+def _suggested_noise(r: np.ndarray, df_resid: int, noise: NoiseModel) -> dict[str, float]:
+    """The noise (std) the geometric fit's residual would imply if nothing were missing: the
+    stated one scaled by the RMS of the whitened position and rotation residuals, corrected
+    for the degrees of freedom the fit uses."""
+    R = r.reshape(-1, 6)
+    dof = df_resid / r.size
+    kp = float(np.sqrt(np.mean(R[:, :3] ** 2) / dof))
+    kr = float(np.sqrt(np.mean(R[:, 3:] ** 2) / dof))
+    return {
+        "position_mm": kp * float(noise.position_mm),
+        "rotation_rad": kr * float(noise.rotation_rad),
+    }
+
+
 def _errors(ho: stats.HeldOut, noise: NoiseModel, p_value: float | None) -> HeldOutErrors:
     sp, sr = float(noise.position_mm), float(noise.rotation_rad)
     dp = sp * np.sqrt(np.mean(np.sum(ho.residual[:, :3] ** 2, axis=1)))
@@ -186,6 +209,8 @@ def diagnose(
     # 2. features of every evaluable candidate and probe, one Jacobian for all
     table = candidates(arm, aux.keys(), effects)
     live = [c for c, why in table if why is None]
+    tested = [c for c in live if not c.effect.refinement]
+    table = [(c, why) for c, why in table if not c.effect.refinement]
     probes = [c for c, why in candidates(arm, aux.keys(), PROBES) if why is None]
     everything = tuple(live + probes)
     sizes = [len(c.parameters(arm)) for c in everything]
@@ -221,13 +246,20 @@ def diagnose(
 
     # 4. candidate table: one row per (effect, location); its variants are alternatives
     evals: dict[Candidate, dict] = {}
-    for c in live:
+    for c in tested:
         Jc = J[:, cols[c]]
         proj = stats.project(Jc, UD)
         Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid)
         A = np.hstack([D, Jc])
-        gain = stats.heldout(r, A, fold).loglik - ho0.loglik if proj.df else None
-        evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A}
+        gain = merit = None
+        if proj.df:
+            ho = stats.heldout(r, A, fold)
+            gain = ho.loglik - ho0.loglik
+            # what selection ranks: the held-out log-likelihood gain, but no more than half the
+            # drop of the plain held-out sum of squares (a flexible candidate that predicts
+            # with a wide covariance gains likelihood without predicting better)
+            merit = min(gain, 0.5 * (ho0.sum_of_squares - ho.sum_of_squares))
+        evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A, "merit": merit}
     groups: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
     for c, why in table:
         groups.setdefault((c.name, c.location), []).append((c, why))
@@ -292,24 +324,51 @@ def diagnose(
     best: Candidate | None = None
     ho1: stats.HeldOut | None = None
     significant = [
-        chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["gain"] or -1.0) > 0
+        chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["merit"] or -1.0) > 0
     ]
     if mismatch and significant:
-        best = max(significant, key=lambda c: evals[c]["gain"])
-        refit_info, parameters, ho1, p_after = _refit(
-            best, cols[best], fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale
-        )
+        best = max(significant, key=lambda c: evals[c]["merit"])
+        same = [c for c in live if (c.name, c.location) == (best.name, best.location)]
+        forms, gains = _refinements(best, same, cols, r, D, J, fold)
+        best = forms[0]
+        args = (fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale)
+        refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(forms, cols, *args)
+        # further forms, judged on the model linearised at the refit (a large effect moves
+        # the solution far from the geometric fit, where the first linearisation was made)
+        while len(forms) <= MAX_REFINEMENTS:
+            free = np.concatenate([np.arange(n_geo), n_geo + _columns(forms, cols)])
+            blocks = {c: J1[:, n_geo + _columns([c], cols)] for c in same if c not in forms}
+            base = (ho1.loglik, ho1.sum_of_squares)
+            found = _best_addition(r1, J1[:, free], blocks, fold, base)
+            if found is None:
+                break
+            forms.append(found[0])
+            gains.append(float(found[1][0] - base[0]))
+            refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(
+                forms, cols, *args, y_start=y1
+            )
+        refit_info["forms"] = [
+            {"variant": c.variant or None, "heldout_gain": g, "n_params": len(c.parameters(arm))}
+            for c, g in zip(forms, gains, strict=True)
+        ]
         after = _errors(ho1, used_noise, p_after)
-        excess0 = ho0.statistic - N
-        explained = 1.0 - (ho1.statistic - N) / excess0 if excess0 > 0 else 1.0
+        explained = min(
+            _explained(ho0.statistic - N, ho1.statistic - N),
+            _explained(
+                ho0.sum_of_squares - ho0.expected_sum_of_squares,
+                ho1.sum_of_squares - ho1.expected_sum_of_squares,
+            ),
+        )
         refit_info["explained_fraction"] = float(explained)
         if given and p_after is not None and p_after < alpha and explained < EXPLAINED_MIN:
             effect_name = "unattributed"
         else:
             effect_name = best.name
             located_in = best.location
-            by_key[(best.name, best.location)].selected = True
-            by_key[(best.name, best.location)].parameters = parameters
+            row = by_key[(best.name, best.location)]
+            row.selected = True
+            row.parameters = parameters
+            row.variant = best.variant or None  # the refit's leading form
     elif mismatch:
         effect_name = "unattributed"
 
@@ -373,6 +432,7 @@ def diagnose(
             "seed": seed,
             "n_poses": m,
             "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": floor[1]},
+            "noise_suggested": _suggested_noise(r, df_resid, used_noise),
             "geometric_fit": {
                 "converged": bool(sol.converged),
                 "iterations": int(sol.iterations),
@@ -394,31 +454,123 @@ def diagnose(
     return diag
 
 
-def _refit(best, sl, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale):
-    """Joint LM refit of the frame errors and ``best``'s parameters (columns ``sl`` of the
-    features); returns ``(info, parameters, heldout, p_after)``."""
+def _explained(excess_before: float, excess_after: float) -> float:
+    """The fraction of the excess held-out misfit (over its expectation) a refit removes."""
+    return 1.0 - excess_after / excess_before if excess_before > 0 else 1.0
+
+
+def _columns(forms: Sequence[Candidate], cols: dict) -> np.ndarray:
+    return np.concatenate([np.arange(cols[c].start, cols[c].stop) for c in forms])
+
+
+def _score(r: np.ndarray, A: np.ndarray, fold: np.ndarray) -> tuple[float, float]:
+    """Held-out ``(log-likelihood, plain sum of squares)`` of the linear model ``r ~ A x``."""
+    ho = stats.heldout(r, A, fold)
+    return ho.loglik, ho.sum_of_squares
+
+
+def _pays(before: tuple[float, float], after: tuple[float, float], k: int) -> bool:
+    """Whether ``k`` more parameters pay for themselves: the held-out log-likelihood rises by
+    more than :data:`REFINE_GAIN_PER_PARAM` per parameter *and* the plain held-out sum of
+    squares falls by twice that (it is twice a log-likelihood), so that a model that merely
+    predicts with a wider covariance never pays."""
+    return (
+        after[0] - before[0] > REFINE_GAIN_PER_PARAM * k
+        and before[1] - after[1] > 2.0 * REFINE_GAIN_PER_PARAM * k
+    )
+
+
+def _best_addition(r, A, blocks, fold, base):
+    """Of the column blocks ``{form: (6m, k)}`` that pay when added to ``A``, the one with the
+    largest held-out gain per parameter: ``(form, score)``, or ``None``."""
+    trials = []
+    for c, B in blocks.items():
+        sc = _score(r, np.hstack([A, B]), fold)
+        if _pays(base, sc, B.shape[1]):
+            trials.append(((sc[0] - base[0]) / B.shape[1], sc, c))
+    if not trials:
+        return None
+    _, sc, c = max(trials, key=lambda t: t[0])
+    return c, sc
+
+
+def _refinements(best, same, cols, r, D, J, fold):
+    """The forms of ``best``'s effect at its location (its variants and refinements, ``same``)
+    to start the refit with, chosen on the linearised model at the geometric fit.
+
+    The start is the tested form ``best``, or the single form with the largest held-out
+    log-likelihood where that one pays against it (:func:`_pays`; a refinement such as a
+    settling drift may replace the form it refines). Then forward selection
+    (:func:`_best_addition`). The refit adds further forms on the model linearised at its own
+    solution (:func:`diagnose`), up to :data:`MAX_REFINEMENTS` in all. Returns the forms and
+    the held-out log-likelihood gain each added (the first: over the geometric fit).
+    """
+    size = lambda c: cols[c].stop - cols[c].start  # noqa: E731
+    geometric = stats.heldout(r, D, fold).loglik
+    singles = {c: _score(r, np.hstack([D, J[:, cols[c]]]), fold) for c in same}
+    forms = [best]
+    base = singles[best] if best in singles else _score(r, np.hstack([D, J[:, cols[best]]]), fold)
+    rival = max(same, key=lambda c: singles[c][0]) if same else best
+    if rival is not best and _pays(base, singles[rival], size(rival)):
+        forms, base = [rival], singles[rival]
+    gains = [float(base[0] - geometric)]
+    for _ in range(MAX_REFINEMENTS):
+        A = np.hstack([D, J[:, _columns(forms, cols)]])
+        blocks = {c: J[:, cols[c]] for c in same if c not in forms}
+        found = _best_addition(r, A, blocks, fold, base)
+        if found is None:
+            break
+        c, sc = found
+        gains.append(float(sc[0] - base[0]))
+        forms.append(c)
+        base = sc
+    return forms, gains
+
+
+def _refit(
+    forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale, y_start=None
+):
+    """Joint LM refit of the frame errors and the parameters of ``forms`` (the selected
+    candidate first, then the forms added to it), from ``y_start`` (all entries of ``y``) or
+    from the linearised fit at the geometric solution. Returns ``(info, parameters, heldout,
+    p_after, y, r1, J1)`` with ``y`` all entries, ``r1`` the whitened residual and ``J1`` the
+    Jacobian of every column at the refit (for further forms). Parameters of added forms are
+    named ``<variant>:<name>``."""
     n_geo = D.shape[1]
-    free = np.concatenate([np.arange(n_geo), n_geo + np.arange(sl.start, sl.stop)])
-    A = np.hstack([D, J[:, sl]])
-    y_lin, _ = _linear_fit(r, A, 1.0)
-    n_all = n_geo + J.shape[1]
-    y0 = np.zeros(n_all)
-    y0[free] = y_lin
-    y, ok, steps = joint_refit(y0, free, fit_arm, q, T, G, F_all)
-    r1, J1 = residual_and_jacobian(jnp.asarray(y, q.dtype), fit_arm, q, T, G, F_all)
+    sel = _columns(forms, cols)
+    free = np.concatenate([np.arange(n_geo), n_geo + sel])
+    if y_start is None:
+        y_lin, _ = _linear_fit(r, np.hstack([D, J[:, sel]]), 1.0)
+        y0 = np.zeros(n_geo + J.shape[1])
+        y0[free] = y_lin
+    else:
+        y0 = np.array(y_start, float)
+    y_all, ok, steps = joint_refit(y0, free, fit_arm, q, T, G, F_all)
+    r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, q.dtype), fit_arm, q, T, G, F_all)
     r1 = np.asarray(r1, float) / sigma_scale
-    J1 = np.asarray(J1, float)[:, free] / sigma_scale
+    J1_all = np.asarray(J1_all, float) / sigma_scale
+    J1 = J1_all[:, free]
     U1 = stats.orthonormal_basis(J1)
     dof = r1.size - U1.shape[1]
     chi2 = float(r1 @ r1)
     inflate = max(1.0, chi2 / max(dof, 1))
     _, sd = _linear_fit(r1, J1, inflate)
-    y = np.asarray(y, float)[free]
-    params = _estimates(y[n_geo:], sd[n_geo:], best, arm)
+    y = np.asarray(y_all, float)[free]
+    params: dict[str, ParameterEstimate] = {}
+    at = n_geo
+    for i, c in enumerate(forms):
+        k = cols[c].stop - cols[c].start
+        est = _estimates(y[at : at + k], sd[at : at + k], c, arm)
+        at += k
+        params.update(est if i == 0 else {f"{c.variant}:{n}": v for n, v in est.items()})
     ho1 = stats.heldout(r1, J1, fold, with_null=given)
-    p_after = ho1.p_value() if given else None
+    # Q and the plain sum of squares, Bonferroni: a refit with many parameters widens its
+    # predictive covariance, which deflates Q but not |e|^2
+    p_after = None
+    if given:
+        p_after = min(1.0, 2.0 * min(ho1.p_value(), ho1.p_value_sum_of_squares()))
     info = {
-        "candidate": best.label,
+        "candidate": forms[0].label,
         "converged": bool(ok),
         "steps": int(steps),
         "chi2": chi2,
@@ -428,7 +580,7 @@ def _refit(best, sl, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_s
             name: [float(v) for v in y[6 * j : 6 * j + 6]] for j, name in enumerate(arm.frame_names)
         },
     }
-    return info, params, ho1, p_after
+    return info, params, ho1, p_after, np.asarray(y_all, float), r1, J1_all
 
 
 def _locate(probes, cols, r, J, UD, df_resid, alpha):

@@ -78,13 +78,27 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "of that kind but of another form than the vocabulary's."
             )
         else:
-            msg += " No single location explains it."
+            sug = det["noise_suggested"]
+            msg += (
+                " No single location explains it, and no pose-dependent probe finds structure "
+                "in it: the measuring device may be noisier than stated (the residual suggests "
+                f"{sug['position_mm']:.3g} mm, {sug['rotation_rad']:.3g} rad)."
+            )
         lines.append(msg)
     else:
         assert best is not None
-        values = {k: (v.value, v.low, v.high) for k, v in d.parameters.items()}
+        values = {k: (v.value, v.low, v.high) for k, v in d.parameters.items() if ":" not in k}
         text = best.effect.describe(best.location, values)
         lines.append(f"Most likely missing physics: {text}.")
+        added = (det["refit"] or {}).get("forms", [])[1:]
+        if added:
+            lines.append(
+                "Richer forms of it that pay for themselves on held-out poses, refitted with it: "
+                + ", ".join(
+                    f"{f['variant']} (+{f['heldout_gain']:.1f} log-likelihood)" for f in added
+                )
+                + "."
+            )
         lines.append(
             f"Held-out position error {b.delta_p_mm:.3g} -> {a.delta_p_mm:.3g} mm, rotation "
             f"{b.delta_R_rad:.3g} -> {a.delta_R_rad:.3g} rad; noise floor "

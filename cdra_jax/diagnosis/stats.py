@@ -83,6 +83,8 @@ class HeldOut:
         statistic: ``Q``.
         loglik: held-out Gaussian log-likelihood ``-(Q + sum log det S_f + N log 2 pi) / 2``.
         weights: ``lambda_k`` of the null distribution of ``Q`` (when requested), else None.
+        ss_weights: those of the plain sum of squares ``|e|^2`` of the held-out residuals (when
+            requested), else None.
     """
 
     residual: np.ndarray
@@ -90,6 +92,24 @@ class HeldOut:
     statistic: float
     loglik: float
     weights: np.ndarray | None = None
+    ss_weights: np.ndarray | None = None
+
+    @property
+    def sum_of_squares(self) -> float:
+        """``|e|^2``: the plain sum of squared held-out residuals (what ``delta_p`` reports)."""
+        return float(np.sum(self.residual**2))
+
+    @property
+    def expected_sum_of_squares(self) -> float:
+        """``E|e|^2 = tr S`` under the model."""
+        return float(np.sum(self.variance))
+
+    def p_value_sum_of_squares(self) -> float:
+        """``P(|e'|^2 >= |e|^2)`` under the model (needs ``ss_weights``). Unlike ``Q``, it is
+        not deflated when a model with many parameters predicts with a wide covariance."""
+        if self.ss_weights is None:
+            raise ValueError("held-out null weights were not computed (with_null=False)")
+        return quadratic_form_sf(self.sum_of_squares, self.ss_weights)
 
     def p_value(self) -> float:
         """``P(Q' >= Q)`` under the model (needs ``weights``)."""
@@ -115,6 +135,7 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
     Q = 0.0
     logdet = 0.0
     W = np.zeros((N, N)) if with_null else None
+    Wss = np.zeros((N, N)) if with_null else None
     for f in np.unique(fold):
         te = rows == f
         tr = ~te
@@ -134,11 +155,13 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
             B[:, te] = np.eye(int(te.sum()))
             B[:, tr] = -G
             W[te] = np.linalg.solve(L, B)
-    weights = None
+            Wss[te] = B
+    weights = ss_weights = None
     if W is not None:
         weights = np.linalg.svd(W, compute_uv=False) ** 2
+        ss_weights = np.linalg.svd(Wss, compute_uv=False) ** 2
     loglik = -0.5 * (Q + logdet + N * np.log(2 * np.pi))
-    return HeldOut(res.reshape(-1, 6), var.reshape(-1, 6), Q, float(loglik), weights)
+    return HeldOut(res.reshape(-1, 6), var.reshape(-1, 6), Q, float(loglik), weights, ss_weights)
 
 
 def quadratic_form_sf(x: float, weights: np.ndarray) -> float:

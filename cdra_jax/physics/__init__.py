@@ -21,6 +21,7 @@ from .effects import VOCABULARY as VOCABULARY
 from .effects import Backlash as Backlash
 from .effects import CableElasticity as CableElasticity
 from .effects import CableScale as CableScale
+from .effects import DrumPeriodicError as DrumPeriodicError
 from .effects import JointCompliance as JointCompliance
 from .effects import LinkBending as LinkBending
 from .effects import PeriodicError as PeriodicError

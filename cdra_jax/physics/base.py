@@ -139,6 +139,10 @@ class Effect:
     variant: str = ""
     """Which form of the effect (e.g. ``"k=2"`` for the second harmonic); the variants of one
     effect at one location are alternatives, tried together and Bonferroni-corrected."""
+    refinement: bool = False
+    """A richer term of an effect (e.g. a load-hardening correction of a compliance) that is not
+    tested on its own: the diagnosis adds it to a selected effect at the same location only
+    where it pays for itself in held-out likelihood (see :mod:`cdra_jax.diagnosis`)."""
 
     def locations(self, arm: Arm) -> tuple[str, ...]:
         """Module or frame names this effect can sit at."""

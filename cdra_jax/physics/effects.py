@@ -96,8 +96,29 @@ def _interval(values: Mapping[str, tuple[float, float, float]], name: str, unit:
     return f"{_fmt(v)} {unit} ({_fmt(lo)} to {_fmt(hi)})"
 
 
+def _harmonics(harmonics) -> tuple[int, ...]:
+    out = tuple(int(h) for h in harmonics)
+    if not out or min(out) < 1:
+        raise ValueError(f"harmonics must be positive integers, got {harmonics!r}")
+    return out
+
+
 class ModuleEffect(Effect):
-    """An effect located at a module (``shoulder``, ``elbow``, ``wrist`` for the CDRA)."""
+    """An effect located at a module (``shoulder``, ``elbow``, ``wrist`` for the CDRA).
+
+    Effects with named forms list them in ``FORMS`` (those in ``REFINEMENTS`` are refinements,
+    see :attr:`Effect.refinement`) and call :meth:`_set_form`.
+    """
+
+    FORMS: tuple[str, ...] = ()
+    REFINEMENTS: tuple[str, ...] = ()
+
+    def _set_form(self, form: str) -> None:
+        if form not in self.FORMS:
+            raise ValueError(f"{self.name} form must be one of {self.FORMS}, got {form!r}")
+        self.form = form
+        self.variant = form
+        self.refinement = form in self.REFINEMENTS
 
     def locations(self, arm: Arm) -> tuple[str, ...]:
         return arm.module_names
@@ -108,36 +129,55 @@ class ModuleEffect(Effect):
 
 
 class JointCompliance(ModuleEffect):
-    """Rotational deflection of a module's platform proportional to the gravity torque."""
+    """Rotational deflection of a module's platform proportional to the gravity torque ``tau``
+    it carries (about the module centre, :func:`cdra_jax.modules.statics.gravity_torques`).
+
+    Variants: ``"isotropic"``, the rotation ``c tau`` (spherical modules; 1 parameter), and
+    for revolute and prismatic modules ``c_a (a.tau) a + c_t (tau - (a.tau) a)`` about and
+    across the joint axis ``a`` (2 parameters); ``"per_axis"``, a diagonal compliance along the
+    platform's own axes (the moving link's principal axes: bending about x and y, torsion
+    about z), ``R diag(c) R^T tau`` with ``R`` the platform orientation (3 parameters);
+    ``"per_axis_quadratic"`` (a refinement, never tested alone), the second-order term of a
+    load-dependent stiffness, ``R diag(c2) R^T tau |tau|`` (rad/(N mm)^2; negative for a joint
+    that stiffens under load).
+    """
 
     name = "joint_compliance"
     needs = "masses (mass, com of the modules' bodies)"
     summary = "rotational deflection of a module proportional to the gravity load it carries"
     MAX = 1e-5  # rad/(N mm): 33 mrad under the ~3.3 N m the CDRA shoulder carries
+    TAU_SCALE = 1e3  # N mm: the load over which a plausible stiffness may double
+
+    FORMS = ("isotropic", "per_axis", "per_axis_quadratic")
+    REFINEMENTS = ("per_axis_quadratic",)
+
+    def __init__(self, form: str = "isotropic"):
+        self._set_form(form)
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
-        if mod.kind == "spherical":
-            return (
+        spec = lambda n, d: ParameterSpec(n, "rad/(N*mm)", 0.0, self.MAX, d)
+        if self.form == "per_axis_quadratic":
+            return tuple(
                 ParameterSpec(
-                    "compliance",
-                    "rad/(N*mm)",
-                    0.0,
-                    self.MAX,
-                    "platform rotation per unit gravity torque (isotropic)",
-                ),
+                    f"compliance_{c}_quadratic",
+                    "rad/(N*mm)^2",
+                    -self.MAX / self.TAU_SCALE,
+                    self.MAX / self.TAU_SCALE,
+                    f"change of the compliance about the platform's {c} axis per N*mm of load",
+                )
+                for c in "xyz"
             )
+        if self.form == "per_axis":
+            return tuple(
+                spec(f"compliance_{c}", f"rotation about the platform's {c} axis per N*mm")
+                for c in "xyz"
+            )
+        if mod.kind == "spherical":
+            return (spec("compliance", "platform rotation per unit gravity torque (isotropic)"),)
         return (
-            ParameterSpec(
-                "compliance_axial", "rad/(N*mm)", 0.0, self.MAX, "rotation about the joint axis"
-            ),
-            ParameterSpec(
-                "compliance_transverse",
-                "rad/(N*mm)",
-                0.0,
-                self.MAX,
-                "rotation across the joint axis (hinge bending)",
-            ),
+            spec("compliance_axial", "rotation about the joint axis"),
+            spec("compliance_transverse", "rotation across the joint axis (hinge bending)"),
         )
 
     def missing(self, arm, location, aux_names):
@@ -149,7 +189,13 @@ class JointCompliance(ModuleEffect):
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         tau = gravity_torques(arm, q, _payload(aux, q))[:, i, :]  # (m, 3) N mm, base frame
-        if mod.kind == "spherical":
+        if self.form in ("per_axis", "per_axis_quadratic"):
+            R = mod.pose(arm.split_state(q)[i])[:, :3, :3]
+            local = jnp.einsum("mji,mj->mi", R, tau)  # torque in the platform frame
+            cols = R * local[:, None, :]  # column c: R e_c (e_c . R^T tau)
+            if self.form == "per_axis_quadratic":
+                cols = cols * jnp.linalg.norm(tau, axis=-1)[:, None, None]
+        elif mod.kind == "spherical":
             cols = tau[..., None]
         else:
             a = jnp.asarray(mod.axis, q.dtype)
@@ -173,27 +219,91 @@ class _CableEffect(ModuleEffect):
             return f"module {location!r} has no cables in the model"
         return None
 
+    def _length_step_features(self, arm: Arm, q: Array, i: int, dl: Array) -> Features:
+        """Features of the cable length errors ``dl (m, n)`` (mm per unit parameter) of module
+        ``i``, mapped to its state by least squares ``J^+ dl``: one column, or one per cable
+        for the ``"per_cable"`` form."""
+        mod = arm.modules[i]
+        J = length_jacobian(mod, arm.split_state(q)[i])  # (m, n, dof)
+        if getattr(self, "form", None) == "per_cable":
+            step = _lstsq_columns(J, dl[..., None] * jnp.eye(mod.n_cables, dtype=q.dtype))
+        else:
+            step = _lstsq(J, dl)[..., None]
+        return _module_step_features(arm, q, i, step)
+
+
+def _per_cable_words(values: Mapping[str, tuple[float, float, float]], unit: str) -> str:
+    """``"l1 <value> (<low> to <high>); l2 ..."`` for parameters named ``..._l<k>``."""
+    return "; ".join(f"{n.split('_')[-1]} {_interval(values, n, unit)}" for n in values)
+
+
+POWER_TENSION_N = 100.0
+"""Reference tension (N) of the power-law cable stretch refinements."""
+
 
 class CableElasticity(_CableEffect):
-    """Cable stretch ``c t`` (``t``: tensions holding the arm) mapped to a module-state change."""
+    """Cable stretch ``c_i t_i`` (``t``: tensions holding the arm) mapped to a module-state
+    change by least squares over the cables, ``J^+ (c t)``.
+
+    Variants (the tension model and how many compliances):
+
+    * ``"holding"``: one compliance for all cables, tensions of
+      :func:`cdra_jax.modules.statics.holding_tensions` (minimum norm above the pretension floor);
+    * ``"pretension_share"``: one compliance, tensions ``f + A^+ (-g)``: the pretension ``f`` in
+      every cable plus the minimum-norm share of the gravity load ``g`` (no floor);
+    * ``"per_cable"``: one compliance per cable (cables routed over different lengths have
+      different stiffnesses), holding tensions;
+    * ``"quadratic"`` (a refinement, never tested alone): the second-order term ``c2 t_i^2`` of
+      a tension-dependent stiffness (negative for a cable that stiffens as it is loaded);
+    * ``"power0.5"``, ``"power0.75"`` (refinements): a power-law stretch
+      ``c t_ref (t_i / t_ref)^p`` (``t_ref`` = :data:`POWER_TENSION_N`), the usual empirical
+      law of a rope or braided cable that stiffens as its strands bed in.
+    """
 
     name = "cable_elasticity"
     needs = "cables, masses (tensions from the statics), pretension"
     summary = "cable stretch proportional to tension (pretension plus gravity load)"
 
+    FORMS = ("holding", "pretension_share", "per_cable", "quadratic", "power0.5", "power0.75")
+    REFINEMENTS = ("quadratic", "power0.5", "power0.75")
+
+    def __init__(self, form: str = "holding"):
+        self._set_form(form)
+
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
         high = 10.0 / mod.stiffness if mod.stiffness else 1.0
-        return (
-            ParameterSpec(
-                "axial_compliance",
-                "mm/N",
-                0.0,
-                high,
-                "cable stretch per newton of tension (1/stiffness); plausible up to 10x the "
-                "model's 1/stiffness",
-            ),
+        desc = (
+            "cable stretch per newton of tension (1/stiffness); plausible up to 10x the model's "
+            "1/stiffness"
         )
+        if self.form == "per_cable":
+            return tuple(
+                ParameterSpec(f"axial_compliance_l{k + 1}", "mm/N", 0.0, high, desc)
+                for k in range(mod.n_cables)
+            )
+        if self.form == "quadratic":
+            t0 = max(float(mod.pretension or 0.0), 1.0)
+            return (
+                ParameterSpec(
+                    "axial_compliance_quadratic",
+                    "mm/N^2",
+                    -high / t0,
+                    high / t0,
+                    "change of the cable compliance per newton of tension",
+                ),
+            )
+        if self.form.startswith("power"):
+            return (
+                ParameterSpec(
+                    f"axial_compliance_{self.form}",
+                    "mm/N",
+                    0.0,
+                    high,
+                    f"stretch per newton at {POWER_TENSION_N:g} N of a power-law cable",
+                ),
+            )
+        return (ParameterSpec("axial_compliance", "mm/N", 0.0, high, desc),)
 
     def missing(self, arm, location, aux_names):
         reason = super().missing(arm, location, aux_names)
@@ -207,21 +317,49 @@ class CableElasticity(_CableEffect):
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         qi = arm.split_state(q)[i]
-        # The tensions holding the arm (cdra_jax.modules.statics.holding_tensions), for this
-        # module only: min-norm tensions above the pretension floor balancing its gravity load.
         load = arm.split_state(gravity_loads(arm, q, _payload(aux, q)))[i]
-        t = distribute_tensions(structure_matrix(mod, qi), -load, module_floor(mod)).tensions
-        J = length_jacobian(mod, qi)  # (m, n, dof)
-        step = _lstsq(J, t)
-        return _module_step_features(arm, q, i, step[..., None])
+        A = structure_matrix(mod, qi)  # (m, d, n)
+        if self.form == "pretension_share":
+            # f + A^+ (-load): every cable at the pretension plus the min-norm load share
+            AAt = jnp.einsum("mdn,men->mde", A, A)
+            share = jnp.einsum("mdn,md->mn", A, jnp.linalg.solve(AAt, -load[..., None])[..., 0])
+            t = module_floor(mod) + share
+        else:
+            # The tensions holding the arm (cdra_jax.modules.statics.holding_tensions), for
+            # this module only: min-norm tensions above the pretension floor.
+            t = distribute_tensions(A, -load, module_floor(mod)).tensions  # (m, n) N
+        if self.form == "quadratic":
+            t = t * t
+        elif self.form.startswith("power"):
+            p = float(self.form.removeprefix("power"))
+            t = POWER_TENSION_N * (jnp.maximum(t, 0.0) / POWER_TENSION_N) ** p
+        return self._length_step_features(arm, q, i, t)
 
     def describe(self, location, values):
+        power = [n for n in values if n.startswith("axial_compliance_power")]
+        if power:
+            return (
+                f"the {location} module's cables stretch under load, stiffening as they are "
+                f"loaded (stretch ~ tension^{power[0].removeprefix('axial_compliance_power')}): "
+                f"compliance at {POWER_TENSION_N:g} N {_interval(values, power[0], 'mm/N')}"
+            )
+        if "axial_compliance" not in values:
+            return (
+                f"the {location} module's cables stretch under load (each its own compliance): "
+                + _per_cable_words(values, "mm/N")
+            )
         v, lo, hi = values["axial_compliance"]
         stiff = f"; stiffness {_fmt(1 / v)} N/mm" if v > 0 else ""
         return (
             f"the {location} module's cables stretch under load: axial compliance "
             f"{_interval(values, 'axial_compliance', 'mm/N')}{stiff}"
         )
+
+
+def _lstsq_columns(J: Array, B: Array) -> Array:
+    """``J^+ B``: ``J (m, n, d)``, ``B (m, n, p)`` -> ``(m, d, p)``."""
+    JtJ = jnp.einsum("mni,mnj->mij", J, J)
+    return jnp.linalg.solve(JtJ, jnp.einsum("mni,mnp->mip", J, B))
 
 
 def _lstsq(J: Array, b: Array) -> Array:
@@ -237,40 +375,42 @@ class CableScale(_CableEffect):
     Variants: ``"from_home"`` (default), the length paid out from the home state (zero state)
     is off, ``l(q) -> l(q) + s (l(q) - l(0))``, as for a winch zeroed at home; ``"absolute"``,
     the whole length is off, ``l(q) -> (1 + s) l(q)``, as for lengths counted from the drum's
-    zero.
+    zero; ``"per_cable"``, from home with one factor per cable (every winch its own drum).
     """
 
     name = "cable_scale"
     needs = "cables"
     summary = "winch/drum radius error: cable lengths off by a factor from home"
 
+    FORMS = ("from_home", "absolute", "per_cable")
+
     def __init__(self, form: str = "from_home"):
-        if form not in ("from_home", "absolute"):
-            raise ValueError(f"cable_scale form must be 'from_home' or 'absolute', got {form!r}")
-        self.form = form
-        self.variant = form
+        self._set_form(form)
 
     def parameters(self, arm, location):
-        return (
-            ParameterSpec(
-                "scale_error",
-                "1",
-                -0.05,
-                0.05,
-                "relative error of the length paid out from home (drum radius error)",
-            ),
-        )
+        _, mod = self.module(arm, location)
+        desc = "relative error of the length paid out from home (drum radius error)"
+        if self.form == "per_cable":
+            return tuple(
+                ParameterSpec(f"scale_error_l{k + 1}", "1", -0.05, 0.05, desc)
+                for k in range(mod.n_cables)
+            )
+        return (ParameterSpec("scale_error", "1", -0.05, 0.05, desc),)
 
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         qi = arm.split_state(q)[i]
         dl = cable_lengths(mod, qi)  # (m, n) mm
-        if self.form == "from_home":
+        if self.form != "absolute":
             dl = dl - cable_lengths(mod, jnp.zeros_like(qi))
-        step = _lstsq(length_jacobian(mod, qi), dl)
-        return _module_step_features(arm, q, i, step[..., None])
+        return self._length_step_features(arm, q, i, dl)  # per_cable: each winch its drum
 
     def describe(self, location, values):
+        if "scale_error" not in values:
+            return (
+                f"the {location} module's cable lengths are off by a factor per winch (drum "
+                "radius errors): " + _per_cable_words(values, "")
+            )
         v = values["scale_error"][0]
         return (
             f"the {location} module's cable lengths are off by a factor (winch drum radius): "
@@ -292,11 +432,10 @@ class Backlash(ModuleEffect):
     needs = "approach.<module> column"
     summary = "offset whose sign follows the approach direction"
 
+    FORMS = ("state", "rotation")
+
     def __init__(self, form: str = "state"):
-        if form not in ("state", "rotation"):
-            raise ValueError(f"backlash form must be 'state' or 'rotation', got {form!r}")
-        self.form = form
-        self.variant = form
+        self._set_form(form)
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -339,11 +478,12 @@ class PeriodicError(ModuleEffect):
     """A transmission error periodic in each module angle: ``a sin(k q) + b cos(k q)``.
 
     The periods are those of the joint angle itself (``2 pi / k``): a once-per-revolution error
-    (eccentric drum, pulley or encoder, ``k = 1``) and its overtones (ellipticity ``k = 2``,
-    a 3- to 6-lobed bearing or gear). The vocabulary tries each ``k = 1 .. 6`` as a variant
-    (one harmonic at a time keeps the model from absorbing any smooth joint error; the
-    variants are Bonferroni-corrected). Over the CDRA's 2 rad joint ranges higher orders put
-    too few of a few dozen poses into each period to be told from noise.
+    (eccentric pulley or encoder, ``k = 1``) and its overtones (ellipticity ``k = 2``, a 3- to
+    6-lobed bearing or gear). The vocabulary tries each ``k = 1 .. 6`` as a variant (one
+    harmonic at a time keeps the model from absorbing any smooth joint error; the variants are
+    Bonferroni-corrected). Over the CDRA's 2 rad joint ranges higher orders put too few of a
+    few dozen poses into each period to be told from noise. Errors periodic in a winch drum's
+    angle are :class:`DrumPeriodicError`.
     """
 
     name = "periodic_error"
@@ -351,9 +491,7 @@ class PeriodicError(ModuleEffect):
     summary = "transmission error periodic in a module angle"
 
     def __init__(self, harmonics: tuple[int, ...] = (1,)):
-        self.harmonics = tuple(int(h) for h in harmonics)
-        if not self.harmonics or min(self.harmonics) < 1:
-            raise ValueError(f"harmonics must be positive integers, got {harmonics!r}")
+        self.harmonics = _harmonics(harmonics)
         self.variant = "k=" + ",".join(map(str, self.harmonics))
 
     def parameters(self, arm, location):
@@ -396,6 +534,76 @@ class PeriodicError(ModuleEffect):
         return (
             f"the {location} module has a periodic transmission error (harmonics "
             f"{', '.join(map(str, self.harmonics))} of the joint angle): amplitude {parts}"
+        )
+
+
+class DrumPeriodicError(_CableEffect):
+    """A transmission error periodic in the winch drum angles of a cable-driven module.
+
+    A drum of radius ``r`` turns by ``phi_i = (l_i(q) - l_i(0)) / r`` when cable ``i`` is paid
+    out from home (lengths of the model's cable geometry, :func:`cable_lengths`); an eccentric
+    or out-of-round drum (or a once-per-turn encoder error) makes the length actually paid out
+    err by a Fourier series ``sum_k a_ik sin(k phi_i) + b_ik cos(k phi_i)`` over the harmonics
+    ``k`` (1: eccentricity, tested; 2: ovality, a refinement that joins the refit where it
+    pays), with its own phases on every drum. The
+    module state then moves by the least-squares ``J^+ e`` over the cables (``J`` the length
+    Jacobian). The drum radius is not in the model file: the vocabulary tries the radii of
+    :data:`DRUM_RADII_MM` as variants (``"drum r=<mm>"``), each with ``2 n_harmonics n``
+    amplitudes (mm).
+    """
+
+    name = "periodic_error"
+    needs = "cables"
+    summary = "transmission error periodic in a module angle (winch drum angle)"
+
+    def __init__(self, radius_mm: float = 10.0, harmonics: tuple[int, ...] = (1,)):
+        if not radius_mm > 0:
+            raise ValueError(f"drum radius must be positive, got {radius_mm!r}")
+        self.harmonics = _harmonics(harmonics)
+        self.radius_mm = float(radius_mm)
+        self.variant = f"drum r={self.radius_mm:g}mm k=" + ",".join(map(str, self.harmonics))
+        self.refinement = 1 not in self.harmonics  # overtones alone refine the fundamental
+
+    def parameters(self, arm, location):
+        _, mod = self.module(arm, location)
+        return tuple(
+            ParameterSpec(
+                f"l{j + 1}_{fn}{k}",
+                "mm",
+                -0.5,
+                0.5,
+                f"amplitude of {fn}({k} x drum angle) in the length error of cable {j + 1}",
+            )
+            for j in range(mod.n_cables)
+            for k in self.harmonics
+            for fn in ("sin", "cos")
+        )
+
+    def features(self, arm, q, aux, location):
+        i, mod = self.module(arm, location)
+        qi = arm.split_state(q)[i]
+        phi = (cable_lengths(mod, qi) - cable_lengths(mod, jnp.zeros_like(qi))) / self.radius_mm
+        k = jnp.asarray(self.harmonics, q.dtype)
+        kphi = phi[..., None] * k  # (m, n, h)
+        waves = jnp.stack([jnp.sin(kphi), jnp.cos(kphi)], axis=-1)  # (m, n, h, 2)
+        n, h = mod.n_cables, len(self.harmonics)
+        # column (j, k, fn): the wave on cable j only
+        e = jnp.einsum("mjkf,jl->mljkf", waves, jnp.eye(n, dtype=q.dtype))
+        e = e.reshape(q.shape[0], n, n * h * 2)
+        step = _lstsq_columns(length_jacobian(mod, qi), e)
+        return _module_step_features(arm, q, i, step)
+
+    def describe(self, location, values):
+        amp: dict[str, float] = {}
+        for name, (v, _, _) in values.items():
+            cable = name.split("_")[0]
+            amp[cable] = amp.get(cable, 0.0) + v * v
+        worst = max(amp.values(), default=0.0) ** 0.5
+        return (
+            f"the {location} module has a transmission error periodic in its winch drum angles "
+            f"(harmonics {', '.join(map(str, self.harmonics))}; drum radius "
+            f"{self.radius_mm:g} mm assumed): largest cable length error amplitude "
+            f"{_fmt(worst)} mm"
         )
 
 
@@ -462,17 +670,41 @@ class LinkBending(Effect):
 
 
 class ThermalDrift(Effect):
-    """The mount moving slowly against the measuring device: translation and rotation ~ time."""
+    """The mount moving slowly against the measuring device: translation and rotation ~ time.
+
+    ``tau=None`` (the tested form): drift rates, ``v t`` and ``w t``. With a time constant
+    ``tau`` (s; a refinement, never tested alone), a warm-up that settles,
+    ``(1 - exp(-t / tau))`` times a translation and a rotation of the mount (mm, rad).
+    """
 
     name = "thermal_drift"
     needs = "time_s column"
     summary = "slow drift with time"
     _COMP = ("vx", "vy", "vz", "wx", "wy", "wz")
 
+    def __init__(self, tau_s: float | None = None):
+        if tau_s is not None and not tau_s > 0:
+            raise ValueError(f"thermal drift time constant must be positive, got {tau_s!r}")
+        self.tau_s = None if tau_s is None else float(tau_s)
+        self.refinement = tau_s is not None
+        self.variant = "" if tau_s is None else f"warm-up tau={self.tau_s:g}s"
+
     def locations(self, arm):
         return arm.frame_names[:1]
 
     def parameters(self, arm, location):
+        if self.tau_s is not None:
+            return tuple(
+                ParameterSpec(
+                    f"settled_{c}_tau{self.tau_s:g}",
+                    "mm" if c[0] == "v" else "rad",
+                    -10.0 if c[0] == "v" else -0.01,
+                    10.0 if c[0] == "v" else 0.01,
+                    f"settled warm-up {'translation' if c[0] == 'v' else 'rotation'} of the "
+                    f"mount along {c[1]} (time constant {self.tau_s:g} s)",
+                )
+                for c in self._COMP
+            )
         return tuple(
             ParameterSpec(
                 f"rate_{c}",
@@ -492,11 +724,20 @@ class ThermalDrift(Effect):
 
     def features(self, arm, q, aux, location):
         t = jnp.asarray(aux[TIME], q.dtype)
+        if self.tau_s is not None:
+            t = -jnp.expm1(-t / self.tau_s)
         f = Features.zeros(arm, q.shape[0], 6, q.dtype)
         fd = f.frame_deflection.at[:, 0].set(t[:, None, None] * jnp.eye(6, dtype=q.dtype))
         return Features(f.state, f.module_twist, fd)
 
     def describe(self, location, values):
+        if self.tau_s is not None:
+            v = [values[f"settled_{c}_tau{self.tau_s:g}"][0] for c in self._COMP]
+            return (
+                f"the arm's {location} drifts as it warms up (time constant {self.tau_s:g} s): "
+                f"settling {_fmt(sum(x * x for x in v[:3]) ** 0.5)} mm and "
+                f"{_fmt(sum(x * x for x in v[3:]) ** 0.5)} rad away"
+            )
         v = [values[f"rate_{c}"][0] for c in self._COMP]
         trans = sum(x * x for x in v[:3]) ** 0.5
         rot = sum(x * x for x in v[3:]) ** 0.5
@@ -506,23 +747,36 @@ class ThermalDrift(Effect):
         )
 
 
+DRUM_RADII_MM: tuple[float, ...] = (5.0, 7.0, 10.0, 14.0, 20.0)
+"""Winch drum radii (mm) the drum-angle periodic-error variants try (a factor ~1.4 apart)."""
+
+WARMUP_TAUS_S: tuple[float, ...] = tuple(round(150.0 * 2 ** (i / 2)) for i in range(9))
+"""Time constants (s) of the thermal warm-up refinements: 150 s to 2400 s, a factor 1.41 apart."""
+
 VOCABULARY: tuple[Effect, ...] = (
-    JointCompliance(),
-    CableElasticity(),
+    JointCompliance("isotropic"),
+    JointCompliance("per_axis"),
+    JointCompliance("per_axis_quadratic"),
+    CableElasticity("holding"),
+    CableElasticity("pretension_share"),
+    CableElasticity("per_cable"),
+    CableElasticity("quadratic"),
+    CableElasticity("power0.5"),
+    CableElasticity("power0.75"),
     CableScale("from_home"),
     CableScale("absolute"),
+    CableScale("per_cable"),
     Backlash("state"),
     Backlash("rotation"),
-    PeriodicError((1,)),
-    PeriodicError((2,)),
-    PeriodicError((3,)),
-    PeriodicError((4,)),
-    PeriodicError((5,)),
-    PeriodicError((6,)),
+    *(PeriodicError((k,)) for k in range(1, 7)),
+    *(DrumPeriodicError(r, (1,)) for r in DRUM_RADII_MM),
+    *(DrumPeriodicError(r, (2,)) for r in DRUM_RADII_MM),
     LinkBending(),
     ThermalDrift(),
+    *(ThermalDrift(tau) for tau in WARMUP_TAUS_S),
 )
-"""The seven effects of design.md (with their variants), in the order of its table."""
+"""The seven effects of design.md (with their variants and refinements), in the order of its
+table."""
 
 EFFECT_NAMES: tuple[str, ...] = tuple(dict.fromkeys(e.name for e in VOCABULARY))
 

@@ -28,8 +28,13 @@ from .base import Candidate, Features, corrected_tool_pose
 
 def recording_aux(key: Array, arm: Arm, m: int, *, dt_s: float = 20.0, payload_kg: float = 0.0):
     """The auxiliary columns of ``m`` recordings: ``time_s``, ``approach.*``, ``payload_kg``."""
-    signs = jnp.where(jax.random.bernoulli(key, 0.5, (m, len(arm.modules))), 1.0, -1.0)
-    aux = {"time_s": jnp.arange(m, dtype=float) * dt_s, "payload_kg": jnp.full(m, payload_kg)}
+    dtype = jnp.asarray(arm.frames).dtype
+    one = jnp.ones((m, len(arm.modules)), dtype)
+    signs = jnp.where(jax.random.bernoulli(key, 0.5, (m, len(arm.modules))), one, -one)
+    aux = {
+        "time_s": jnp.arange(m, dtype=dtype) * jnp.asarray(dt_s, dtype),
+        "payload_kg": jnp.full(m, payload_kg, dtype),
+    }
     for i, name in enumerate(arm.module_names):
         aux[f"approach.{name}"] = signs[:, i]
     return aux
