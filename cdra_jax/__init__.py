@@ -13,7 +13,12 @@ from . import calibration as calibration
 from . import identifiability as identifiability
 from . import io as io
 from . import lie as lie
+from . import modules as modules
+from . import pose_selection as pose_selection
+from . import reproduction as reproduction
 from . import simulation as simulation
+from . import sweeps as sweeps
+from . import uncertainty as uncertainty
 from .arm import Arm as Arm
 from .arm import Module as Module
 from .arm import apply_frame_errors as apply_frame_errors
@@ -25,10 +30,18 @@ from .calibration import CalibrationSolution as CalibrationSolution
 from .calibration import NoiseModel as NoiseModel
 from .calibration import calibrate_lm as calibrate_lm
 from .calibration import calibrate_paper as calibrate_paper
+from .calibration import calibrate_robust as calibrate_robust
 from .calibration import deviation_metrics as deviation_metrics
-from .identifiability import analyze as analyze_identifiability
+from .io import check_plausibility as check_plausibility
 from .io import default_arm as default_arm
+from .io import load_measurements as load_measurements
 from .io import load_model as load_model
+from .io import load_result as load_result
+from .io import save_measurements as save_measurements
 from .io import save_model as save_model
+from .io import save_result as save_result
+from .pose_selection import select_poses as select_poses
+from .sweeps import run_sweep as run_sweep
+from .uncertainty import analyze_uncertainty as analyze_uncertainty
 
 __version__ = importlib.metadata.version("cdra_jax")

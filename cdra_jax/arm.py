@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -46,6 +47,9 @@ class Module(eqx.Module):
         limits: per state entry ``(low, high)``, in rad or mm.
         cable_base: cable attachment points on the module base, ``(n, 3)`` mm, or ``None``.
         cable_platform: matching points on the moving platform, ``(n, 3)`` mm, or ``None``.
+        cable_offset: per-cable length offset ``(n,)`` mm, or ``None`` (zero): a measured cable
+            length is the straight-line attachment distance plus this offset (encoder zero,
+            routing; see :mod:`cdra_jax.modules.cables`).
         mass: mass (kg) of the body the module moves, or ``None``.
         com: its centre of mass ``(3,)`` mm in the platform frame, or ``None``.
         pretension: cable pretension (N), or ``None``.
@@ -58,6 +62,7 @@ class Module(eqx.Module):
     limits: tuple[tuple[float, float], ...] = eqx.field(static=True)
     cable_base: Array | None = None
     cable_platform: Array | None = None
+    cable_offset: Array | None = None
     mass: float | None = eqx.field(static=True, default=None)
     com: Array | None = None
     pretension: float | None = eqx.field(static=True, default=None)
@@ -74,8 +79,25 @@ class Module(eqx.Module):
                 f"got {len(self.limits)}"
             )
         for lo, hi in self.limits:
+            if not (np.isfinite(lo) and np.isfinite(hi)):
+                raise ValueError(
+                    f"module {self.name!r}: limits must be finite (low, high) pairs, "
+                    f"got ({lo}, {hi})"
+                )
             if not lo < hi:
                 raise ValueError(f"module {self.name!r}: limit low {lo} is not below high {hi}")
+        if self.kind != "spherical" and not isinstance(self.axis, jax.core.Tracer):
+            a = np.asarray(self.axis, dtype=float)
+            if a.shape != (3,) or not np.all(np.isfinite(a)):
+                raise ValueError(
+                    f"module {self.name!r}: axis must be a finite 3-vector, got {self.axis!r}"
+                )
+            if abs(np.linalg.norm(a) - 1.0) > 1e-9:
+                raise ValueError(
+                    f"module {self.name!r}: axis must be a unit vector (norm "
+                    f"{np.linalg.norm(a):.6g}); build the module with revolute() or "
+                    "prismatic(), which normalise it"
+                )
         if (self.cable_base is None) != (self.cable_platform is None):
             raise ValueError(f"module {self.name!r}: cables need both base and platform points")
         if self.cable_base is not None and self.cable_platform is not None:
@@ -85,6 +107,14 @@ class Module(eqx.Module):
                 raise ValueError(
                     f"module {self.name!r}: cable points must both be (n, 3), got "
                     f"{np.shape(self.cable_base)} and {np.shape(self.cable_platform)}"
+                )
+        if self.cable_offset is not None:
+            if self.cable_base is None:
+                raise ValueError(f"module {self.name!r}: cable_offset given without cables")
+            if np.shape(self.cable_offset) != (self.n_cables,):
+                raise ValueError(
+                    f"module {self.name!r}: cable_offset must be ({self.n_cables},), one per "
+                    f"cable, got {np.shape(self.cable_offset)}"
                 )
 
     @property
@@ -126,23 +156,25 @@ def spherical(
     name: str, limits: Sequence[tuple[float, float]] = ((-1.0, 1.0),) * 3, **kwargs
 ) -> Module:
     """A 3-DOF spherical module (state: rotation vector, rad)."""
-    return Module(
-        name=name, kind="spherical", axis=jnp.zeros(3), limits=_limits(limits), **kwargs
-    )
+    return Module(name=name, kind="spherical", axis=jnp.zeros(3), limits=_limits(limits), **kwargs)
 
 
 def revolute(
     name: str, axis: ArrayLike, limits: tuple[float, float] = (-np.pi, np.pi), **kwargs
 ) -> Module:
     """A 1-DOF revolute module about ``axis`` (state: angle, rad)."""
-    return Module(name=name, kind="revolute", axis=_unit(axis, name), limits=_limits([limits]), **kwargs)
+    return Module(
+        name=name, kind="revolute", axis=_unit(axis, name), limits=_limits([limits]), **kwargs
+    )
 
 
 def prismatic(
     name: str, axis: ArrayLike, limits: tuple[float, float] = (-100.0, 100.0), **kwargs
 ) -> Module:
     """A 1-DOF prismatic module along ``axis`` (state: displacement, mm)."""
-    return Module(name=name, kind="prismatic", axis=_unit(axis, name), limits=_limits([limits]), **kwargs)
+    return Module(
+        name=name, kind="prismatic", axis=_unit(axis, name), limits=_limits([limits]), **kwargs
+    )
 
 
 def _limits(limits: Sequence[Sequence[float]]) -> tuple[tuple[float, float], ...]:
@@ -254,7 +286,9 @@ class Arm(eqx.Module):
 
 def module_poses(arm: Arm, q: ArrayLike) -> Array:
     """Module platform poses ``(..., K, 4, 4)`` from the flat state ``q (..., dof)``."""
-    return jnp.stack([m.pose(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)], -3)
+    return jnp.stack(
+        [m.pose(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)], -3
+    )
 
 
 def chain(frames: ArrayLike, poses: ArrayLike) -> tuple[Array, Array]:
@@ -301,7 +335,14 @@ def apply_frame_errors(arm: Arm, errors: ArrayLike) -> Arm:
     ``errors`` is the flat parameter vector ``X (6 (K+1),)`` of Eq. 8 (ordered as
     ``arm.param_names``) or ``(K+1, 6)``; ``F_j -> exp(hat(X_j)) F_j``.
     """
-    X = jnp.asarray(errors).reshape(len(arm.frame_names), 6)
+    X = jnp.asarray(errors)
+    if X.size != arm.n_params:
+        raise ValueError(
+            f"arm {arm.name!r} has {arm.n_params} error parameters, a (v, w) twist for each "
+            f"frame of {arm.frame_names}: pass ({arm.n_params},) or "
+            f"({len(arm.frame_names)}, 6), got errors of shape {X.shape}"
+        )
+    X = X.reshape(len(arm.frame_names), 6)
     return arm.with_frames(lie.se3_exp(X) @ arm.frames)
 
 

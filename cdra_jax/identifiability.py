@@ -4,19 +4,38 @@ From the nominal model and the module states of a pose set, the stacked Jacobian
 Eq. 9 (optionally whitened by a :class:`~cdra_jax.calibration.NoiseModel`) is decomposed by SVD.
 Its numerical rank is the number of identifiable parameter combinations; the right singular
 vectors with (numerically) zero singular values are the unidentifiable directions, reported as
-named parameter combinations such as ``0.71 upper_arm.wy - 0.71 forearm.wy``. For the paper's
+named parameter combinations such as ``0.707 upper_arm.vy - 0.707 forearm.vy``. For the paper's
 CDRA the rank is 22 of 24: a rotation about the elbow axis and a translation along it can be
 moved between ``upper_arm`` and ``forearm`` without changing any tool pose.
 
-The null-space basis is rotated to a readable form: each basis vector is made as sparse as the
-subspace allows (a QR with column pivoting of the basis, so that each direction is anchored on
-its largest parameter) and small coefficients (``< 1e-9``) are dropped.
+Readable directions. Parameters mix units (mm and rad), so the unidentifiable subspace is
+reported in two forms:
+
+* ``directions`` (and the text in ``unidentifiable``): first the rotational directions, then
+  the translation-only ones. Each direction is anchored on a parameter of its own (a QR with
+  column pivoting chooses the anchors, rotation parameters for the rotational directions) and
+  is zero on the anchors of the others, which keeps it sparse. A rotational direction is scaled
+  so that its *rotation part has unit norm*; its translation coefficients are then the
+  lever-arm translations in mm per rad that must accompany the rotation, e.g. for the CDRA
+  ``0.707 upper_arm.wy - 0.707 forearm.wy - 212 upper_arm.vx``: rotate the upper arm frame by
+  +a and the forearm frame by -a about the elbow axis (y), and shift the upper arm frame by
+  -300 a mm along x, since the elbow axis sits 300 mm from its origin. These lever arms are
+  orthogonal to every translation-only direction. A translation-only direction has unit norm
+  (mm), e.g. ``0.707 upper_arm.vy - 0.707 forearm.vy``. Directions are not mutually orthogonal
+  in general (for the CDRA they are). The first sizeable coefficient in parameter order is
+  positive.
+* ``null_space``: an orthonormal basis (Euclidean in the mixed units, as the solvers'
+  minimum-norm steps) of the same subspace, the directions above orthonormalised in order;
+  use it for projections.
+
+Coefficients below ``1e-9`` are dropped.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
@@ -38,11 +57,16 @@ class IdentifiabilityReport:
         n_poses: number of poses.
         singular_values: ``(n_params,)`` in decreasing order (zero-padded if fewer rows).
         condition_number: ``s_max / s_min`` over the identifiable directions.
-        null_space: ``(n_params - rank, n_params)`` orthonormal basis of unidentifiable
-            directions (rows), in readable form.
-        unidentifiable: those directions as text, e.g. ``"0.71 upper_arm.wy - 0.71 forearm.wy"``.
+        null_space: ``(n_params - rank, n_params)`` orthonormal basis of the unidentifiable
+            subspace (rows), in the order of ``directions``.
+        unidentifiable: ``directions`` as text, e.g.
+            ``"0.707 upper_arm.vy - 0.707 forearm.vy"`` (see the module docstring).
         param_names: names of the parameters, in the order of the columns.
         rcond: the relative singular-value cut-off used.
+        warnings: plain-text warnings (few poses, rank deficiency, modules that never move).
+        directions: ``(n_params - rank, n_params)`` readable basis of the same subspace (rows):
+            rotational directions with unit-norm rotation part and lever-arm translations
+            (mm/rad), then unit-norm translation-only directions (module docstring).
     """
 
     rank: int
@@ -55,6 +79,7 @@ class IdentifiabilityReport:
     param_names: tuple[str, ...]
     rcond: float
     warnings: tuple[str, ...] = field(default=())
+    directions: np.ndarray | None = None
 
     @property
     def identifiable(self) -> bool:
@@ -62,7 +87,7 @@ class IdentifiabilityReport:
         return self.rank == self.n_params
 
     def to_dict(self) -> dict:
-        """JSON-ready mapping (``rank``, ``n_params``, ``unidentifiable`` ...)."""
+        """JSON-ready mapping (``rank``, ``n_params``, ``unidentifiable``, ``directions`` ...)."""
         return {
             "rank": int(self.rank),
             "n_params": int(self.n_params),
@@ -74,6 +99,10 @@ class IdentifiabilityReport:
             "null_space": [
                 {n: float(c) for n, c in zip(self.param_names, row, strict=True) if c != 0.0}
                 for row in self.null_space
+            ],
+            "directions": [
+                {n: float(c) for n, c in zip(self.param_names, row, strict=True) if c != 0.0}
+                for row in (self.null_space if self.directions is None else self.directions)
             ],
             "warnings": list(self.warnings),
         }
@@ -91,24 +120,43 @@ class IdentifiabilityReport:
         return "\n".join(lines)
 
 
-def stacked_jacobian(arm: Arm, q: ArrayLike, measured: ArrayLike | None = None,
-                     noise: NoiseModel | None = None) -> np.ndarray:
+def stacked_jacobian(
+    arm: Arm, q: ArrayLike, measured: ArrayLike | None = None, noise: NoiseModel | None = None
+) -> np.ndarray:
     """``D~ (6m, 6(K+1))`` of Eq. 9 at the model ``arm`` (whitened when ``noise`` is given).
 
     Whitening needs the tool positions; without ``measured`` the model's are used.
     """
     q = jnp.asarray(q, jnp.asarray(arm.frames).dtype)
+    return np.asarray(_stacked_jacobian(arm, q, measured, noise))
+
+
+@eqx.filter_jit
+def _stacked_jacobian(arm, q, measured, noise):
+    # Compiled once per shape: analyze() is called in loops (pose-set design, sweeps).
     tool, after = chain(arm.frames, module_poses(arm, q))
     D = calibration_jacobian(after)
     G = whitening(tool if measured is None else jnp.asarray(measured), noise)
     if G is not None:
         D = G @ D
-    return np.asarray(D.reshape(-1, D.shape[-1]))
+    return D.reshape(-1, D.shape[-1])
+
+
+def _is_rotation(name: str) -> bool:
+    """``<frame>.wx|wy|wz`` parameters are rotations (rad); ``.vx|vy|vz`` translations (mm)."""
+    return name.rsplit(".", 1)[-1].startswith("w")
 
 
 def format_combination(coeffs: np.ndarray, names: tuple[str, ...], tol: float = 1e-9) -> str:
-    """``"0.71 upper_arm.wy - 0.71 forearm.wy"`` from coefficients and parameter names."""
-    order = np.argsort(-np.abs(coeffs), kind="stable")
+    """``"0.707 upper_arm.wy - 0.707 forearm.wy - 212 upper_arm.vx"`` from coefficients.
+
+    Rotation parameters come first, then translations; each group by decreasing magnitude
+    (ties in parameter order); coefficients below ``tol`` are left out.
+    """
+    coeffs = np.asarray(coeffs, dtype=float)
+    is_trans = np.array([not _is_rotation(n) for n in names])
+    # Magnitudes rounded so that equal coefficients (up to rounding) keep the parameter order.
+    order = np.lexsort((np.arange(len(names)), -np.round(np.abs(coeffs), 9), is_trans))
     parts = []
     for i in order:
         c = coeffs[i]
@@ -122,24 +170,89 @@ def format_combination(coeffs: np.ndarray, names: tuple[str, ...], tol: float = 
     return " ".join(parts) if parts else "0"
 
 
-def _readable_basis(N: np.ndarray, tol: float = 1e-9) -> np.ndarray:
-    """Rotate an orthonormal basis (columns) of a subspace into a sparse, readable one (rows)."""
+def _echelon(N: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Combine the columns of ``N`` so that each is 1 on its own pivot and 0 on the others.
+
+    Pivots are chosen among ``rows`` by a QR with column pivoting (largest entries first).
+    """
+    _, _, piv = scipy.linalg.qr(N[rows].T, pivoting=True)
+    pivots = rows[piv[: N.shape[1]]]
+    return N @ np.linalg.inv(N[pivots])
+
+
+def _normalise(B: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Scale each column to unit norm over ``rows``, its first sizeable entry there positive."""
+    B = B / np.linalg.norm(B[rows], axis=0)
+    for j in range(B.shape[1]):
+        c = B[rows, j]
+        first = np.flatnonzero(np.abs(c) > 1e-6 * np.abs(c).max())[0]
+        if c[first] < 0:
+            B[:, j] = -B[:, j]
+    return B
+
+
+def sparse_basis(N: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Rotate an orthonormal basis (columns) of any subspace into a sparse, readable one (rows).
+
+    A pivoted QR of ``N^T`` picks, for each direction, the parameter that dominates it; the basis
+    is reduced to that echelon form and orthonormalised in pivot order (Gram-Schmidt keeps the
+    sparsity of the first vectors). Each vector's largest entry is made positive and entries
+    below ``tol`` are zeroed. Used where parameters have no frame/twist structure (e.g. the
+    module self-calibration); :func:`readable_directions` is the frame-aware form.
+    """
     if N.shape[1] == 0:
         return np.zeros((0, N.shape[0]))
-    # Pivoted QR of N^T picks, for each direction, the parameter that dominates it; reduce the
-    # basis to that "echelon" form, then orthonormalise in pivot order (Gram-Schmidt keeps the
-    # sparsity pattern of the first vectors).
     _, _, piv = scipy.linalg.qr(N.T, pivoting=True)
     k = N.shape[1]
     B = N @ np.linalg.solve(N[piv[:k], :], np.eye(k))  # B[piv[:k]] = I
     Q, _ = np.linalg.qr(B)
-    # Fix signs so that each vector's largest entry is positive.
     for j in range(k):
         i = np.argmax(np.abs(Q[:, j]))
         if Q[i, j] < 0:
             Q[:, j] = -Q[:, j]
     Q[np.abs(Q) < tol] = 0.0
     return Q.T
+
+
+def readable_directions(
+    N: np.ndarray, names: tuple[str, ...], tol: float = 1e-9
+) -> tuple[np.ndarray, np.ndarray]:
+    """Readable and orthonormal bases (rows) of the subspace spanned by the columns of ``N``.
+
+    Args:
+        N: ``(n_params, k)`` orthonormal basis (columns) of a subspace of parameter space.
+        names: parameter names (``<frame>.<vx|vy|vz|wx|wy|wz>``).
+        tol: coefficients below it are set to zero.
+
+    Returns:
+        ``(directions, orthonormal)``, each ``(k, n_params)``: rotational directions (unit-norm
+        rotation part, lever-arm translations in mm/rad) then translation-only directions
+        (unit norm), see the module docstring; and the same directions orthonormalised in order.
+    """
+    n, k = N.shape
+    if k == 0:
+        return np.zeros((0, n)), np.zeros((0, n))
+    rot = np.array([i for i, name in enumerate(names) if _is_rotation(name)], dtype=int)
+    trans = np.array([i for i, name in enumerate(names) if not _is_rotation(name)], dtype=int)
+    # Split the subspace: combinations with no rotation content, and their orthogonal
+    # complement in it (N is orthonormal and the rows of Qt are orthogonal), whose translation
+    # parts, the lever arms, are therefore orthogonal to every pure translation.
+    _, sw, Qt = np.linalg.svd(N[rot], full_matrices=True)
+    r = int(np.sum(sw > 1e-8))
+    N_trans = N @ Qt[r:].T
+    N_trans[rot] = 0.0
+    N_rot = N @ Qt[:r].T
+    blocks = []
+    if r:
+        blocks.append(_normalise(_echelon(N_rot, rot), rot))
+    if k - r:
+        blocks.append(_normalise(_echelon(N_trans, trans), trans))
+    D = np.concatenate(blocks, axis=1)
+    D[np.abs(D) < tol] = 0.0
+    Q, R = np.linalg.qr(D)
+    Q = Q * np.sign(np.diag(R))  # same orientation as the readable directions
+    Q[np.abs(Q) < tol] = 0.0
+    return D.T, Q.T
 
 
 def analyze(
@@ -185,13 +298,19 @@ def analyze(
     s_full[: s.size] = s
     keep = s_full > rcond * s_full[0] if s_full[0] > 0 else np.zeros(n, bool)
     rank = int(keep.sum())
-    null = _readable_basis(Vt[rank:].T)
     names = arm.param_names
-    text = tuple(format_combination(v, names) for v in null)
+    directions, null = readable_directions(Vt[rank:].T, names)
+    text = tuple(format_combination(v, names) for v in directions)
     cond = float(s_full[0] / s_full[rank - 1]) if rank > 0 else float("inf")
     warns = []
     if m < MIN_POSES:
         warns.append(f"only {m} poses: fewer than the paper's lower bound of {MIN_POSES}")
+    for mod, qi in zip(arm.modules, arm.split_state(q), strict=True):
+        if m > 1 and np.all(np.ptp(np.asarray(qi), axis=0) == 0.0):
+            warns.append(
+                f"module {mod.name!r} never moves in this pose set (constant state): the fixed "
+                "frames on either side of it cannot be told apart"
+            )
     if rank < n:
         warns.append(
             f"{n - rank} parameter combination(s) cannot be identified from tool poses; the "
@@ -208,4 +327,5 @@ def analyze(
         param_names=names,
         rcond=rcond,
         warnings=tuple(warns),
+        directions=directions,
     )

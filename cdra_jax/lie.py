@@ -129,9 +129,7 @@ def rotation_to_quaternion(R: ArrayLike) -> Array:
     c1 = m00 > m11
     c2 = m00 < -m11
     t = jnp.where(c0, jnp.where(c1, t0, t1), jnp.where(c2, t2, t3))
-    q = jnp.where(
-        c0[..., None], jnp.where(c1[..., None], q0, q1), jnp.where(c2[..., None], q2, q3)
-    )
+    q = jnp.where(c0[..., None], jnp.where(c1[..., None], q0, q1), jnp.where(c2[..., None], q2, q3))
     return q * (0.5 / jnp.sqrt(t))[..., None]
 
 
@@ -198,9 +196,7 @@ def make_pose(R: ArrayLike, p: ArrayLike) -> Array:
     R, p = jnp.broadcast_arrays(R, p[..., None, :])
     p = p[..., 0, :]
     top = jnp.concatenate([R, p[..., :, None]], axis=-1)
-    bottom = jnp.broadcast_to(
-        jnp.array([0.0, 0.0, 0.0, 1.0], dtype=R.dtype), R.shape[:-2] + (1, 4)
-    )
+    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=R.dtype), R.shape[:-2] + (1, 4))
     return jnp.concatenate([top, bottom], axis=-2)
 
 
@@ -262,7 +258,7 @@ def adjoint(T: ArrayLike) -> Array:
 
 
 def from_xyz_rotvec(xyz: ArrayLike, rotvec: ArrayLike) -> Array:
-    """Pose from a translation (mm) and a rotation vector (rad): ``(..., 3), (..., 3) -> (..., 4, 4)``.
+    """Pose from a translation (mm) and a rotation vector (rad): ``(..., 3) x2 -> (..., 4, 4)``.
 
     Note this is *not* ``se3_exp((xyz, rotvec))``: ``xyz`` is the translation itself.
     """

@@ -34,6 +34,20 @@ def sample_states(key: Array, arm: Arm, m: int, dtype=None) -> Array:
     return lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
 
 
+def sample_poses(key: Array, arm: Arm, m: int, dtype=None) -> Array:
+    """Section V step 1: ``m`` states within the joint limits that the arm can hold: ``(m, dof)``.
+
+    When every module of ``arm`` has cables in the model, states are drawn uniformly within the
+    limits and rejected unless every module has tension closure with a margin
+    (:func:`cdra_jax.modules.sample_feasible_states`); otherwise this is :func:`sample_states`.
+    """
+    if arm.modules and all(mod.n_cables > 0 for mod in arm.modules):
+        from .modules.tension import sample_feasible_states
+
+        return sample_feasible_states(key, arm, m, dtype)
+    return sample_states(key, arm, m, dtype)
+
+
 def random_frame_errors(
     key: Array, arm: Arm, d_v: float = 1.0, d_w: float = 0.05, dtype=None
 ) -> Array:
@@ -51,6 +65,8 @@ def random_frame_errors(
 def add_measurement_noise(key: Array, poses: ArrayLike, noise: NoiseModel | None) -> Array:
     """Perturb measured poses: ``p + N(0, s_pos^2 I)``, ``R -> exp(hat(N(0, s_rot^2 I))) R``.
 
+    The stds may be per-pose arrays ``(m,)`` (see :class:`~cdra_jax.calibration.NoiseModel`).
+
     The rotation noise is applied in the world frame, matching the whitening of
     :func:`cdra_jax.calibration.whitening`. ``noise=None`` returns ``poses`` unchanged.
     """
@@ -59,15 +75,55 @@ def add_measurement_noise(key: Array, poses: ArrayLike, noise: NoiseModel | None
         return poses
     kp, kr = jax.random.split(key)
     shape = poses.shape[:-2] + (3,)
-    dp = jnp.asarray(noise.position_mm, poses.dtype) * jax.random.normal(kp, shape, poses.dtype)
-    dw = jnp.asarray(noise.rotation_rad, poses.dtype) * jax.random.normal(kr, shape, poses.dtype)
+    # [..., None]: per-pose stds (m,) broadcast against the pose axis, as in the whitening.
+    sp = jnp.asarray(noise.position_mm, poses.dtype)[..., None]
+    sr = jnp.asarray(noise.rotation_rad, poses.dtype)[..., None]
+    dp = sp * jax.random.normal(kp, shape, poses.dtype)
+    dw = sr * jax.random.normal(kr, shape, poses.dtype)
     R = lie.so3_exp(dw) @ lie.rotation(poses)
     return lie.make_pose(R, lie.translation(poses) + dp)
 
 
-def measure(
-    key: Array, arm_actual: Arm, q: ArrayLike, noise: NoiseModel | None = None
-) -> Array:
+def add_outliers(
+    key: Array,
+    poses: ArrayLike,
+    n_outliers: int,
+    position_mm: float = 5.0,
+    rotation_rad: float = 0.05,
+) -> tuple[Array, Array]:
+    """Corrupt ``n_outliers`` randomly chosen poses with a gross error (a mis-seated probe).
+
+    Each chosen pose gets a position offset of length ``position_mm`` along a random direction
+    and a world-frame rotation of angle ``rotation_rad`` about a random axis (applied as in
+    :func:`add_measurement_noise`); the other poses are unchanged.
+
+    Args:
+        key: PRNG key.
+        poses: ``(m, 4, 4)`` measured tool poses.
+        n_outliers: how many poses to corrupt (static, ``0 <= n_outliers <= m``).
+        position_mm, rotation_rad: size of the gross error.
+
+    Returns:
+        ``(corrupted (m, 4, 4), mask (m,) bool)``: the poses and which of them were corrupted.
+    """
+    poses = jnp.asarray(poses)
+    m = poses.shape[-3]
+    if not 0 <= n_outliers <= m:
+        raise ValueError(f"n_outliers must be between 0 and the pose count {m}, got {n_outliers}")
+    k_pick, k_dir, k_axis = jax.random.split(key, 3)
+    mask = jnp.zeros(m, bool).at[jax.random.permutation(k_pick, m)[:n_outliers]].set(True)
+
+    def unit(k):
+        v = jax.random.normal(k, (m, 3), poses.dtype)
+        return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+
+    dp = jnp.where(mask[:, None], position_mm * unit(k_dir), 0.0)
+    dw = jnp.where(mask[:, None], rotation_rad * unit(k_axis), 0.0)
+    R = lie.so3_exp(dw) @ lie.rotation(poses)
+    return lie.make_pose(R, lie.translation(poses) + dp), mask
+
+
+def measure(key: Array, arm_actual: Arm, q: ArrayLike, noise: NoiseModel | None = None) -> Array:
     """Simulated measured tool poses ``(m, 4, 4)`` of the actual arm at states ``q (m, dof)``."""
     return add_measurement_noise(key, tool_pose(arm_actual, q), noise)
 

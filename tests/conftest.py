@@ -9,3 +9,63 @@ def cdra():
     from cdra_jax import default_arm
 
     return default_arm()
+
+
+# A UR5-like 6R industrial arm as the same modular chain: six revolute modules about their
+# local z axes with the fixed (Denavit-Hartenberg) transforms Tz(d) Tx(a) Rx(alpha) between
+# them, lengths in mm. The tool frame is the UR5 flange (DH row 6).
+UR5_TOML = """
+name = "ur5"
+description = "UR5-like 6R arm: DH rows as fixed transforms between revolute modules"
+
+[[frames]]
+name = "base"
+xyz = [0.0, 0.0, 0.0]
+rotvec = [0.0, 0.0, 0.0]
+
+[[frames]]
+name = "link1"
+xyz = [0.0, 0.0, 89.159]
+rotvec = [1.5707963267948966, 0.0, 0.0]
+
+[[frames]]
+name = "link2"
+xyz = [-425.0, 0.0, 0.0]
+rotvec = [0.0, 0.0, 0.0]
+
+[[frames]]
+name = "link3"
+xyz = [-392.25, 0.0, 0.0]
+rotvec = [0.0, 0.0, 0.0]
+
+[[frames]]
+name = "link4"
+xyz = [0.0, 0.0, 109.15]
+rotvec = [1.5707963267948966, 0.0, 0.0]
+
+[[frames]]
+name = "link5"
+xyz = [0.0, 0.0, 94.65]
+rotvec = [-1.5707963267948966, 0.0, 0.0]
+
+[[frames]]
+name = "tool"
+xyz = [0.0, 0.0, 82.3]
+rotvec = [0.0, 0.0, 0.0]
+""" + "".join(
+    f"""
+[[modules]]
+name = "joint{i}"
+kind = "revolute"
+axis = [0.0, 0.0, 1.0]
+limits = [[-3.0, 3.0]]
+"""
+    for i in range(1, 7)
+)
+
+
+@pytest.fixture(scope="session")
+def ur5():
+    from cdra_jax.io import loads_model
+
+    return loads_model(UR5_TOML, source="<tests/conftest.py UR5_TOML>")

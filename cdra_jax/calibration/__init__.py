@@ -11,6 +11,16 @@ from .model import pose_errors as pose_errors
 from .model import residual_twist as residual_twist
 from .model import stacked_system as stacked_system
 from .model import whitening as whitening
+from .robust import CAUCHY_C as CAUCHY_C
+from .robust import HUBER_C as HUBER_C
+from .robust import OUTLIER_THRESHOLD as OUTLIER_THRESHOLD
+from .robust import Cauchy as Cauchy
+from .robust import Huber as Huber
+from .robust import RobustLoss as RobustLoss
+from .robust import RobustSolution as RobustSolution
+from .robust import calibrate_robust as calibrate_robust
+from .robust import robust_loss as robust_loss
+from .robust import standardized_residuals as standardized_residuals
 from .solution import RESULTS as RESULTS
 from .solution import CalibrationSolution as CalibrationSolution
 from .solution import result_messages as result_messages

@@ -28,13 +28,12 @@ import jax.numpy as jnp
 from jax.typing import ArrayLike
 
 from .. import lie
-from ..arm import Arm, module_poses
+from ..arm import Arm
 from . import kernels
 from .batching import chunked_vmap
 from .linear import default_rcond, min_norm_lstsq, min_norm_solve_normal, normal_cutoff
 from .model import NoiseModel
-from .solution import RESULTS, CalibrationSolution
-from .validation import check_problem
+from .solution import RESULTS, CalibrationSolution, _assemble_solution, _solve_problem
 
 CHUNK_SIZE = 128
 """Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
@@ -85,10 +84,6 @@ def calibrate_paper(
     Returns:
         A :class:`CalibrationSolution`.
     """
-    q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
-    dtype = measured.dtype
-    poses = module_poses(arm, q)
-    frames0 = jnp.asarray(arm.frames, dtype)
     solve = _paper_solver(
         max_iterations=max_iterations,
         tol=tol,
@@ -96,13 +91,9 @@ def calibrate_paper(
         weighted=noise is not None,
         solver="paper" if noise is None else "weighted",
     )
-    args = (frames0, poses, measured)
-    if noise is not None:
-        args += (jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype))
-    sol = solve(*args)
-    if throw:
-        sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
-    return sol
+    return _solve_problem(
+        solve, arm, q, measured, noise, allow_underdetermined=allow_underdetermined, throw=throw
+    )
 
 
 def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
@@ -197,27 +188,22 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
         s = jnp.linalg.svd(lin.DT, compute_uv=False)
         rc = default_rcond(dtype) if rcond is None else rcond
         rank = jnp.sum(s > rc * s[..., :1], axis=-1)
-        ok = ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R)
-        result = RESULTS.where(
-            ok,
-            RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached),
-            RESULTS.nonfinite,
-        )
-        sol = CalibrationSolution(
-            frames=frames,
-            errors=lie.se3_log(frames @ lie.inverse(frames0)),
-            result=result,
+        sol = _assemble_solution(
+            frames,
+            frames0,
+            ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
+            done=done,
             iterations=k,
             step_norm=steps,
             delta_p=dps,
             delta_R=dRs,
             rank=rank,
-            singular_values=jnp.pad(s, (0, max(0, n - s.shape[-1]))),
+            singular_values=s,
             cost=jnp.sum(lin.Y * lin.Y),
             solver=solver,
         )
         rank_lo, rank_hi, resolved = steps_ok
-        redo = fast_allowed & ~use_svd & ok & (k > 0)
+        redo = fast_allowed & ~use_svd & (sol.result != RESULTS.nonfinite) & (k > 0)
         redo = redo & ((rank_lo != rank) | (rank_hi != rank) | ~resolved)
         return sol, redo
 
@@ -263,4 +249,4 @@ def _normal_equations_apply(dtype, rcond) -> bool:
     of the normal equations does not reproduce (it drops pivots, not singular directions); in
     float32 the normal equations cannot resolve the CDRA's smallest singular values.
     """
-    return rcond is None and jnp.finfo(dtype).eps < 1e-12
+    return rcond is None and bool(jnp.finfo(dtype).eps < 1e-12)

@@ -326,7 +326,7 @@ def linearise(
     reuses that logarithm instead of taking a second one.
     """
     dtype = poses.dtype
-    tool, after = chain(frames, poses)
+    tool, after = chain(jnp.asarray(frames), poses)
     Y = residual(measured, tool)  # (6, m)
     dpos = measured[:, 3] - tool[:, 3]
     m = dpos.shape[-1]

@@ -2,24 +2,36 @@
 
 The parameters are the error twists ``X`` (Eq. 8) of all fixed transforms at once,
 ``F_j(X) = exp(hat(X_j)) F_j`` (Eqs. 11-14 in one step rather than accumulated), and the
-residual is the (optionally whitened) stacked ``log(T_meas T(X)^-1)^v`` of Eq. 7. Rank
-deficiency (the CDRA's two unidentifiable directions) is handled by the damping. The loop
+residual is the (optionally whitened) stacked ``log(T_meas T(X)^-1)^v`` of Eq. 7. The loop
 drives ``optimistix.LevenbergMarquardt`` step by step so that the deviation metrics
 (Eqs. 20-21) are recorded at every step, as for the paper solver.
+
+Scaling. The optimiser works in whitened coordinates ``u`` of the identifiable subspace:
+``X = V S^+ u`` from the SVD ``D~ = U S V^T`` of the stacked Jacobian at the nominal model
+(Eq. 9, the same rank cut-off ``rcond`` as the paper solver). The Jacobian in ``u`` is then
+close to orthonormal, so the trust region is well scaled (mm and rad columns differ by the
+lever arm, hundreds of mm, and by the weights), and the unidentifiable directions (the CDRA's
+two, see :mod:`cdra_jax.identifiability`) have exactly zero columns: they are never moved
+and the damped steps never wander along them on rounding noise. Without this the unscaled
+damped steps at the rounding floor are mostly rejected and the solve needs tens of extra steps.
+Besides optimistix' own termination the loop stops on MINPACK-style tests of the next
+proposed step (:func:`_converged`).
 
 Performance (see ``benchmarks/README.md``):
 
 * the residual is evaluated in the pose-last layout of :mod:`.kernels`, and returns the
   deviation metrics of its point as optimistix' ``aux``, so that recording them costs nothing;
-* its Jacobian is analytic (:func:`residual_jacobian`, a ``jax.custom_jvp``): optimistix
-  linearises the residual at every step and its QR solver materialises the Jacobian, which with
-  autodiff costs 24 forward-mode passes through the chain and the logarithm and here one small
-  matrix product;
+* its Jacobian is analytic (:func:`residual_jacobian`, a ``jax.custom_jvp`` in ``u``):
+  optimistix linearises the residual at every step and its QR solver materialises the
+  Jacobian, which with autodiff costs one forward-mode pass through the chain and the
+  logarithm per column and here two small matrix products;
 * under ``vmap`` the trials run through a work queue (:func:`.batching.queued_vmap`): a fixed
   number of slots iterate side by side and a finished trial's slot takes the next trial.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -29,13 +41,12 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from .. import lie
-from ..arm import Arm, module_poses
+from ..arm import Arm
 from . import kernels
 from .batching import Iteration, queued_vmap
 from .linear import default_rcond
 from .model import NoiseModel
-from .solution import RESULTS, CalibrationSolution
-from .validation import check_problem
+from .solution import CalibrationSolution, _assemble_solution, _solve_problem
 
 SLOTS = 64
 """Trials iterated side by side when the solver is vmapped (the work queue of :mod:`.batching`).
@@ -66,22 +77,16 @@ def calibrate_lm(
 
     Arguments as :func:`cdra_jax.calibration.calibrate_paper`; ``rtol``/``atol`` are the
     optimistix step and cost tolerances and ``max_iterations`` its ``max_steps``. The
-    ``step_norm`` history holds ``||X_k - X_{k-1}||`` (zero for rejected steps).
+    ``step_norm`` history holds ``||X_k - X_{k-1}||`` (zero for rejected steps). The
+    unidentifiable directions of the nominal linearisation (rank cut-off ``rcond``) are left
+    at zero, as the paper solver's minimum-norm steps do to first order.
     """
-    q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
-    dtype = measured.dtype
-    poses = module_poses(arm, q)
-    frames0 = jnp.asarray(arm.frames, dtype)
     solve = _lm_solver(
         max_iterations=max_iterations, rtol=rtol, atol=atol, rcond=rcond, weighted=noise is not None
     )
-    args = (frames0, poses, measured)
-    if noise is not None:
-        args += (jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype))
-    sol = solve(*args)
-    if throw:
-        sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
-    return sol
+    return _solve_problem(
+        solve, arm, q, measured, noise, allow_underdetermined=allow_underdetermined, throw=throw
+    )
 
 
 def residual_jacobian(
@@ -125,9 +130,9 @@ def residual_jacobian(
     # The small contractions as explicit sums of 6 products over the pose axis (XLA turns
     # einsums with the pose axis as a batch axis into transposes and tiny matrix products).
     # (J_r^-1 D_k)^T = D_k^T J_r^-1^T: contract the row axis b.
-    A = sum(DT[:, :, b, None, :] * jr_inv[None, None, :, b, :] for b in range(6))
+    A = _sum6(lambda b: DT[:, :, b, None, :] * jr_inv[None, None, :, b, :])
     # diag(J_l)^T on the left: column c of frame j is sum_d J_l[j][d, c] (column d).
-    A = sum(jl[:, d, :, None, None] * A[:, d, None, :, :] for d in range(6))
+    A = _sum6(lambda d: jl[:, d, :, None, None] * A[:, d, None, :, :])
     J = -jnp.transpose(A.reshape(n, 6, m), (1, 2, 0))  # (row, pose, column)
     if noise is not None:
         r = kernels.whiten(r, measured, noise)
@@ -136,22 +141,31 @@ def residual_jacobian(
     return r.reshape(6 * m), (lin.delta_p, lin.delta_R), J.reshape(6 * m, n)
 
 
-def _residual_fn(frames0, poses, measured, noise):
-    """``X -> (r, (delta_p, delta_R))`` for optimistix, with the analytic Jacobian as its JVP."""
+def _sum6(term: Callable[[int], Array]) -> Array:
+    """``term(0) + ... + term(5)``."""
+    total = term(0)
+    for i in range(1, 6):
+        total = total + term(i)
+    return total
+
+
+def _residual_fn(frames0, poses, measured, noise, basis):
+    """``u -> (r, (delta_p, delta_R))`` at ``X = basis @ u`` for optimistix, with the analytic
+    Jacobian ``J(X) basis`` (:func:`residual_jacobian`) as its JVP."""
 
     @jax.custom_jvp
-    def residual(X):
-        r, aux, _ = residual_jacobian(X, frames0, poses, measured, noise)
+    def residual(u):
+        r, aux, _ = residual_jacobian(basis @ u, frames0, poses, measured, noise)
         return r, aux
 
     @residual.defjvp
     def _jvp(primals, tangents):
-        (X,), (dX,) = primals, tangents
-        r, aux, J = residual_jacobian(X, frames0, poses, measured, noise)
+        (u,), (du,) = primals, tangents
+        r, aux, J = residual_jacobian(basis @ u, frames0, poses, measured, noise)
         zero = jax.tree.map(jnp.zeros_like, aux)
-        return (r, aux), (J @ dX, zero)
+        return (r, aux), ((J @ basis) @ du, zero)
 
-    return lambda X, _: residual(X)
+    return lambda u, _: residual(u)
 
 
 def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
@@ -164,7 +178,7 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         noise = NoiseModel(*noise_std) if weighted else None
         P = jnp.moveaxis(poses[..., :3, :], 0, -1)  # (K, 3, 4, m)
         T = kernels.pose_stack(measured)
-        return _residual_fn(frames0, P, T, noise), P, T, noise
+        return P, T, noise
 
     def optx_state(fn, y0):
         f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, None))
@@ -174,14 +188,18 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
 
     def init(frames0, poses, measured, *noise_std):
         dtype = measured.dtype
-        fn = setup(frames0, poses, measured, *noise_std)[0]
-        y0 = jnp.zeros(6 * frames0.shape[0], dtype)
+        P, T, noise = setup(frames0, poses, measured, *noise_std)
+        # X = basis @ u: whitened coordinates of the identifiable subspace (module docstring).
+        basis = _identifiable_basis(kernels.linearise(frames0, P, T, noise), rcond)
+        fn = _residual_fn(frames0, P, T, noise, basis)
+        u0 = jnp.zeros(basis.shape[-1], dtype)
         nan = jnp.asarray(jnp.nan, dtype)
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
         return (
             jnp.asarray(0),
-            y0,
-            optx_state(fn, y0)[0],
+            u0,
+            basis,
+            optx_state(fn, u0)[0],
             jnp.full((max_iterations,), nan),
             jnp.full((max_iterations + 1,), nan),
             jnp.full((max_iterations + 1,), nan),
@@ -190,63 +208,95 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         )
 
     def running(carry):
-        k, _, _, _, _, _, done, ok = carry
+        k, *_, done, ok = carry
         return (k < max_iterations) & ~done & ok
 
     def step(carry, *args):
-        k, X, dyn_state, steps, dps, dRs, _, _ = carry
-        fn = setup(*args)[0]
-        state = eqx.combine(optx_state(fn, X)[1], dyn_state)
-        # The aux that optimistix returns belongs to its input X: Eqs. 20-21 at X_k.
-        X_new, state, (dp, dR) = solver.step(fn, X, None, options, state, tags)
-        done, _ = solver.terminate(fn, X, None, options, state, tags)
+        k, u, basis, dyn_state, steps, dps, dRs, _, _ = carry
+        fn = _residual_fn(args[0], *setup(*args), basis)
+        state = eqx.combine(optx_state(fn, u)[1], dyn_state)
+        # The aux that optimistix returns belongs to its input u: Eqs. 20-21 at X_k.
+        u_new, state, (dp, dR) = solver.step(fn, u, None, options, state, tags)
+        done, _ = solver.terminate(fn, u, None, options, state, tags)
+        done = done | _converged(state.y_eval - u_new, u_new, state.f_info, rtol, atol)
         dyn_state, _ = eqx.partition(state, eqx.is_array)
         return (
             k + 1,
-            X_new,
+            u_new,
+            basis,
             dyn_state,
-            steps.at[k].set(jnp.linalg.norm(X_new - X)),
+            steps.at[k].set(jnp.linalg.norm(basis @ (u_new - u))),
             dps.at[k].set(dp),
             dRs.at[k].set(dR),
             done,
-            jnp.all(jnp.isfinite(X_new)),
+            jnp.all(jnp.isfinite(u_new)),
         )
 
     def result(carry):
-        k, X, _, steps, dps, dRs, done, ok = carry
-        return k, X, steps, dps, dRs, done, ok
+        k, u, basis, _, steps, dps, dRs, done, ok = carry
+        return k, basis @ u, steps, dps, dRs, done, ok
 
     def finish(res, frames0, poses, measured, *noise_std):
         k, X, steps, dps, dRs, done, ok = res
-        _, P, T, noise = setup(frames0, poses, measured, *noise_std)
-        dtype = measured.dtype
-        k_frames = frames0.shape[0]
-        n = 6 * k_frames
-        frames = lie.se3_exp(X.reshape(k_frames, 6)) @ frames0
+        P, T, noise = setup(frames0, poses, measured, *noise_std)
+        frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
         lin = kernels.linearise(frames, P, T, noise)
         s = jnp.linalg.svd(lin.DT, compute_uv=False)
-        rc = default_rcond(dtype) if rcond is None else rcond
-        dps = dps.at[k].set(lin.delta_p)
-        dRs = dRs.at[k].set(lin.delta_R)
-        ok = ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R)
-        result = RESULTS.where(
-            ok,
-            RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached),
-            RESULTS.nonfinite,
-        )
-        return CalibrationSolution(
-            frames=frames,
-            errors=lie.se3_log(frames @ lie.inverse(frames0)),
-            result=result,
+        rc = default_rcond(measured.dtype) if rcond is None else rcond
+        return _assemble_solution(
+            frames,
+            frames0,
+            ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
+            done=done,
             iterations=k,
             step_norm=steps,
-            delta_p=dps,
-            delta_R=dRs,
+            delta_p=dps.at[k].set(lin.delta_p),
+            delta_R=dRs.at[k].set(lin.delta_R),
             rank=jnp.sum(s > rc * s[..., :1], axis=-1),
-            singular_values=jnp.pad(s, (0, max(0, n - s.shape[-1]))),
+            singular_values=s,
             cost=jnp.sum(lin.Y * lin.Y),
             solver="lm",
         )
 
     it = Iteration(init=init, step=step, running=running, result=result, finish=finish)
     return queued_vmap(it, SLOTS, CHUNK_SIZE)
+
+
+def _identifiable_basis(lin: kernels.Linearisation, rcond: float | None) -> Array:
+    """``(n, r)`` map ``X = B u`` onto the identifiable subspace at the nominal model.
+
+    ``B = V S^+`` from the thin SVD of the (whitened) stacked Jacobian ``D~ = U S V^T`` (Eq. 9,
+    held transposed by ``lin``, so that ``V`` is the left factor of ``D~^T``): the columns are
+    the right singular vectors divided by their singular values, and zero for singular values
+    below ``rcond * s_max``, so that ``D~ B`` has orthonormal (or zero) columns.
+    ``r = min(6 m, n)``.
+    """
+    V, s, _ = jnp.linalg.svd(lin.DT, full_matrices=False)
+    rcond = default_rcond(lin.DT.dtype) if rcond is None else rcond
+    keep = s > rcond * s[..., :1]
+    scale = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
+    return V * scale
+
+
+def _converged(proposal, y, f_info, rtol, atol):
+    """MINPACK-style tests on the *next* proposed step, accepted or not.
+
+    optimistix tests for convergence only after an accepted step, and only on the change of
+    ``y`` and of the residual. Near the optimum the trust-region ratio test compares changes of
+    the cost at its rounding level (noise-free data) or far below any meaningful size (noisy
+    data), so most further steps are rejected and the damping is raised step after step before
+    optimistix' test can fire: tens of wasted steps, and a count that depends on rounding. So
+    also stop when the next step
+
+    * cannot move ``y`` by more than ``atol + rtol |y|`` (``xtol``; optimistix' max norm), or
+    * is predicted to lower the cost ``0.5 |r|^2`` by at most ``rtol * cost + 0.5 atol^2``
+      (``ftol``; the linear model's reduction ``-(r . J dy + 0.5 |J dy|^2)``, computed
+      without cancellation).
+    """
+    small_step = jnp.max(jnp.abs(proposal) / (atol + rtol * jnp.abs(y))) < 1
+    r = f_info.residual
+    Jd = f_info.jac.mv(proposal)
+    predicted = -(jnp.sum(r * Jd) + 0.5 * jnp.sum(Jd * Jd))
+    cost = 0.5 * jnp.sum(r * r)
+    no_progress = predicted <= rtol * cost + 0.5 * atol * atol
+    return small_step | no_progress

@@ -15,6 +15,13 @@ orientation noise lever-armed by ``|p|`` (hundreds of mm). :class:`NoiseModel` w
 ``r = diag(1/s_pos, 1/s_rot) [[I, -hat(p)], [0, I]] Y``, so that each entry of ``r`` has unit
 variance when the measurement noise is isotropic Gaussian with those standard deviations. With
 no noise model the paper's unweighted form ``r = Y`` is used.
+
+Per-pose weights. The two standard deviations may also be arrays of shape ``(m,)``, one entry per
+pose (or anything that broadcasts against the pose axis, e.g. ``(trials, m)`` under ``vmap``):
+pose ``i`` is then whitened by its own ``s_pos[i]``, ``s_rot[i]``. A weight ``w_i`` on the
+squared residual of pose ``i`` is the noise model ``(s_pos / sqrt(w_i), s_rot / sqrt(w_i))``;
+this is how :mod:`.robust` feeds its iteratively reweighted least squares through the
+unchanged solvers.
 """
 
 from __future__ import annotations
@@ -31,7 +38,9 @@ from ..arm import Arm, chain, module_poses
 class NoiseModel(eqx.Module):
     """Isotropic measurement noise of the tool pose: position (mm) and orientation (rad) std.
 
-    Used to weight the residual (see the module docstring) and by the simulator.
+    Used to weight the residual (see the module docstring) and by the simulator. Each std is a
+    number, or an array with one entry per pose (``(m,)``, broadcast against the pose axis of
+    the measured poses ``(..., m, 4, 4)``) for per-pose weights.
     """
 
     position_mm: float | Array
@@ -51,14 +60,19 @@ def residual_twist(measured: ArrayLike, model: ArrayLike) -> Array:
 
 
 def whitening(measured: ArrayLike, noise: NoiseModel | None) -> Array | None:
-    """Per-pose whitening matrices ``G (..., 6, 6)`` for the residual, or ``None`` (paper form)."""
+    """Per-pose whitening matrices ``G (..., 6, 6)`` for the residual, or ``None`` (paper form).
+
+    ``measured`` is ``(..., 4, 4)``; the noise stds are scalars or arrays that broadcast against
+    its leading (pose) dimensions ``(...)``, e.g. ``(m,)`` per-pose stds.
+    """
     if noise is None:
         return None
     measured = jnp.asarray(measured)
     p = lie.translation(measured)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=measured.dtype), p.shape[:-1] + (3, 3))
-    sp = jnp.asarray(noise.position_mm, dtype=measured.dtype)
-    sr = jnp.asarray(noise.rotation_rad, dtype=measured.dtype)
+    # [..., None, None]: a per-pose std (m,) scales the (m, 3, 3) blocks of its own pose.
+    sp = jnp.asarray(noise.position_mm, dtype=measured.dtype)[..., None, None]
+    sr = jnp.asarray(noise.rotation_rad, dtype=measured.dtype)[..., None, None]
     top = jnp.concatenate([eye / sp, -lie.hat3(p) / sp], axis=-1)
     bottom = jnp.concatenate([jnp.zeros_like(eye), eye / sr], axis=-1)
     return jnp.concatenate([top, bottom], axis=-2)

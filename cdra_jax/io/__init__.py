@@ -1,5 +1,20 @@
 """File contracts: model TOML, measurement CSV, result JSON (see ``shared/design.md``)."""
 
+from .files import OutputExistsError as OutputExistsError
+from .files import write_text_atomic as write_text_atomic
+from .frame_errors import FrameErrorFileError as FrameErrorFileError
+from .frame_errors import frame_errors_from_mapping as frame_errors_from_mapping
+from .frame_errors import frame_errors_to_dict as frame_errors_to_dict
+from .frame_errors import load_frame_errors as load_frame_errors
+from .frame_errors import save_frame_errors as save_frame_errors
+from .measurements import MeasurementFileError as MeasurementFileError
+from .measurements import Measurements as Measurements
+from .measurements import check_pose_count as check_pose_count
+from .measurements import dumps_measurements as dumps_measurements
+from .measurements import load_measurements as load_measurements
+from .measurements import loads_measurements as loads_measurements
+from .measurements import rigid_transform_problem as rigid_transform_problem
+from .measurements import save_measurements as save_measurements
 from .model import ModelFileError as ModelFileError
 from .model import arm_from_dict as arm_from_dict
 from .model import arm_to_dict as arm_to_dict
@@ -9,3 +24,12 @@ from .model import dumps_model as dumps_model
 from .model import load_model as load_model
 from .model import loads_model as loads_model
 from .model import save_model as save_model
+from .plausibility import check_plausibility as check_plausibility
+from .results import ResultFileError as ResultFileError
+from .results import calibrated_arm_from_result as calibrated_arm_from_result
+from .results import dumps_result as dumps_result
+from .results import load_result as load_result
+from .results import loads_result as loads_result
+from .results import result_frames as result_frames
+from .results import result_to_dict as result_to_dict
+from .results import save_result as save_result

@@ -16,7 +16,8 @@ Format (see the README for a complete example)::
     kind = "revolute"                # spherical | revolute | prismatic
     axis = [0.0, 1.0, 0.0]           # revolute / prismatic only
     limits = [[0.0, 2.0]]            # one (low, high) per state entry
-    # optional: cables = [{ base = [x, y, z], platform = [x, y, z] }, ...] (mm),
+    # optional: cables = [{ base = [x, y, z], platform = [x, y, z] }, ...] (mm), each cable
+    #           optionally with offset = <mm> (measured length = attachment distance + offset),
     #           mass (kg), com (mm, platform frame), pretension (N), stiffness (N/mm)
 
 Frames are written back as ``xyz`` + ``rotvec`` (floats printed with all 17 significant digits,
@@ -33,19 +34,27 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import tomli_w
 
 from .. import lie
 from ..arm import MODULE_KINDS, Arm, Module
+from .files import write_text_atomic
 
 _ORTHO_TOL = 1e-6
 _DEFAULT_MODEL = "cdra.toml"
+# One compiled call instead of dozens of small op-by-op dispatches: every CLI run loads a model.
+_from_xyz_rotvec = jax.jit(lie.from_xyz_rotvec)
+_to_xyz_rotvec = jax.jit(lie.to_xyz_rotvec)
 
 
 class ModelFileError(ValueError):
     """A model file is malformed; the message names the file and the entry."""
+
+
+_ROTVEC_MAX_ANGLE = 1e3  # rad; as io.measurements.ROTVEC_MAX_ANGLE
 
 
 def _err(source: str, where: str, what: str) -> ModelFileError:
@@ -92,10 +101,19 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
         raise _err(source, where, "needs 'xyz' (mm) and 'rotvec' (rad), or 'matrix' (4x4)")
     xyz = _vector(source, f"{where}.xyz", spec["xyz"], 3)
     rv = _vector(source, f"{where}.rotvec", spec["rotvec"], 3)
-    return np.asarray(lie.from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
+    if not np.linalg.norm(rv) <= _ROTVEC_MAX_ANGLE:
+        raise _err(
+            source,
+            f"{where}.rotvec",
+            f"angle {np.linalg.norm(rv):.4g} rad is above {_ROTVEC_MAX_ANGLE:g} rad: "
+            "not a rotation vector in radians",
+        )
+    return np.asarray(_from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
 
 
 def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
+    if not isinstance(spec, Mapping):
+        raise _err(source, f"modules[{i}]", f"expected a table ([[modules]]), got {spec!r}")
     name = spec.get("name")
     where = f"modules[{i}] ({name!s})"
     if not isinstance(name, str) or not name:
@@ -139,27 +157,54 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         raise _err(source, f"{where}.limits", f"expected {dof} pairs [low, high]") from None
     if lim.shape != (dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
         raise _err(
-            source, f"{where}.limits", f"expected {dof} pairs [low, high] with low < high, got {limits!r}"
+            source,
+            f"{where}.limits",
+            f"expected {dof} pairs [low, high] with low < high, got {limits!r}",
         )
     kwargs: dict[str, Any] = {}
     if "cables" in spec:
         cables = spec["cables"]
         if not isinstance(cables, list) or not cables:
             raise _err(source, f"{where}.cables", "expected a non-empty list of {base, platform}")
-        base, plat = [], []
+        base, plat, offset = [], [], []
         for j, c in enumerate(cables):
-            if not isinstance(c, Mapping) or set(c) != {"base", "platform"}:
+            if not isinstance(c, Mapping) or not (
+                {"base", "platform"} <= set(c) <= {"base", "platform", "offset"}
+            ):
                 raise _err(
-                    source, f"{where}.cables[{j}]", "expected { base = [x, y, z], platform = [x, y, z] }"
+                    source,
+                    f"{where}.cables[{j}]",
+                    "expected { base = [x, y, z], platform = [x, y, z] } (optional offset = mm)",
                 )
             base.append(_vector(source, f"{where}.cables[{j}].base", c["base"], 3))
             plat.append(_vector(source, f"{where}.cables[{j}].platform", c["platform"], 3))
+            if "offset" in c:
+                v = c["offset"]
+                if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+                    raise _err(
+                        source, f"{where}.cables[{j}].offset", f"expected a number (mm), got {v!r}"
+                    )
+                offset.append(float(v))
+        if offset and len(offset) != len(cables):
+            raise _err(
+                source,
+                f"{where}.cables",
+                f"give 'offset' for every cable or for none "
+                f"({len(offset)} of {len(cables)} have one)",
+            )
         kwargs["cable_base"] = jnp.asarray(np.stack(base))
         kwargs["cable_platform"] = jnp.asarray(np.stack(plat))
+        if offset:
+            kwargs["cable_offset"] = jnp.asarray(np.asarray(offset))
     for key in ("mass", "pretension", "stiffness"):
         if key in spec:
             v = spec[key]
-            if not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not math.isfinite(v)
+                or v < 0
+            ):
                 raise _err(source, f"{where}.{key}", f"expected a non-negative number, got {v!r}")
             kwargs[key] = float(v)
     if "com" in spec:
@@ -180,6 +225,8 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
     unknown = sorted(set(spec) - {"name", "description", "gravity", "frames", "modules"})
     if unknown:
         raise _err(source, "top level", f"unknown keys {unknown}")
+    if not isinstance(spec.get("description", ""), str):
+        raise _err(source, "description", f"expected a string, got {spec['description']!r}")
     frames = spec.get("frames")
     modules = spec.get("modules")
     if not isinstance(modules, list) or not modules:
@@ -213,7 +260,7 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
         modules=mods,
         frame_names=tuple(names),
         name=spec["name"],
-        description=str(spec.get("description", "")),
+        description=spec.get("description", ""),
         gravity=jnp.asarray(gravity),
     )
 
@@ -260,7 +307,7 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
         if exact:
             frames.append({"name": name, "matrix": _floats(M)})
         else:
-            xyz, rv = lie.to_xyz_rotvec(jnp.asarray(M))
+            xyz, rv = _to_xyz_rotvec(jnp.asarray(M))
             frames.append({"name": name, "xyz": _floats(xyz), "rotvec": _floats(rv)})
     modules = []
     for m in arm.modules:
@@ -273,6 +320,9 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
                 {"base": _floats(b), "platform": _floats(p)}
                 for b, p in zip(np.asarray(m.cable_base), np.asarray(m.cable_platform), strict=True)
             ]
+            if m.cable_offset is not None:
+                for c, o in zip(d["cables"], np.asarray(m.cable_offset), strict=True):
+                    c["offset"] = float(o)
         if m.mass is not None:
             d["mass"] = float(m.mass)
         if m.com is not None:
@@ -296,6 +346,12 @@ def dumps_model(arm: Arm, *, exact: bool = False) -> str:
     return tomli_w.dumps(arm_to_dict(arm, exact=exact))
 
 
-def save_model(arm: Arm, path: str | os.PathLike, *, exact: bool = False) -> None:
-    """Write ``arm`` as a model TOML file (see :func:`dumps_model`)."""
-    Path(path).write_text(dumps_model(arm, exact=exact), encoding="utf-8")
+def save_model(
+    arm: Arm, path: str | os.PathLike, *, exact: bool = False, force: bool = False
+) -> Path:
+    """Write ``arm`` as a model TOML file (see :func:`dumps_model`); returns the path.
+
+    Written atomically (a reader or a crash never sees half a file); an existing file is only
+    replaced with ``force=True``, otherwise :class:`~cdra_jax.io.OutputExistsError`.
+    """
+    return write_text_atomic(path, dumps_model(arm, exact=exact), force=force)

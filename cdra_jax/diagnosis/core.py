@@ -1,0 +1,471 @@
+"""Find the missing physics: detect, locate, attribute and refit (design.md, 'diagnose').
+
+1. **Fit** the 24 frame errors by the weighted Gauss-Newton of the paper
+   (:func:`cdra_jax.calibration.calibrate_paper` with the noise model).
+2. **Detect** whether that fit is consistent with the stated noise: the K-fold held-out
+   chi-square ``Q`` with the predictive covariance ``I + D_f C D_f^T`` and its exact null
+   distribution (:mod:`.stats`); where poses are repeated, a lack-of-fit F test that needs no
+   noise value; and the family of candidate F tests (Holm-corrected). The reported ``p_value``
+   is the Bonferroni combination of the tests used (``min(1, n_tests * min p)``), so that
+   ``mismatch = p_value < alpha`` keeps the false-positive rate at ``alpha`` or below.
+3. **Attribute**: each candidate of :mod:`cdra_jax.physics` is linearised at the geometric fit
+   (``jax.jacfwd`` of the extended model, all candidates in one compiled program); what the
+   frame errors absorb is projected out; the absorbed fraction, the F test, the held-out
+   log-likelihood gain and the candidates this pose set cannot tell apart are tabulated. The
+   selected candidate is the one with the largest held-out gain among those significant at
+   ``alpha`` after Holm's correction.
+4. **Refit** the frame errors and the selected candidate's parameters jointly (optimistix
+   Levenberg-Marquardt on the whitened residual), with 95 % intervals from the joint covariance
+   and a plausibility check. If the refit still misfits (held-out p < alpha) and removes less
+   than :data:`EXPLAINED_MIN` of the excess held-out misfit, or no candidate is significant,
+   the effect is ``unattributed`` and located by generic probes (:mod:`cdra_jax.physics.probes`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.stats
+
+from ..arm import Arm
+from ..calibration import NoiseModel, whitening
+from ..calibration.validation import MIN_POSES
+from ..io.measurements import Measurements
+from ..physics import PROBES, VOCABULARY, Candidate, Effect, candidates
+from . import stats
+from .model import all_features, geometric_fit, joint_refit, residual_and_jacobian
+from .report import render_report
+from .result import CandidateRow, Diagnosis, HeldOutErrors, ParameterEstimate
+
+EXPLAINED_MIN = 0.9
+"""A significant candidate whose refit leaves a significant held-out misfit is still reported
+when it removes at least this fraction of the excess held-out chi-square ``Q - E[Q]``."""
+
+LOCATE_MIN = 0.5
+"""An unattributed misfit is placed where the best (rejected) candidate sits when that
+candidate removes at least this fraction of the excess; otherwise the generic probes place it."""
+
+COS_INDISTINGUISHABLE = 0.98
+REPEAT_TOL = 1e-6
+"""Module states that agree within this (rad or mm, per entry) count as a repeated pose."""
+
+ABSORBED_EXACTLY = (
+    "a uniform length scale of the arm (every fixed translation scaled alike): the frame "
+    "errors absorb it exactly",
+    "constant joint offsets (encoder zeros) of revolute and prismatic modules and constant "
+    "rotations of a module's platform: the neighbouring frame errors absorb them exactly",
+    "a constant measurement-device bias (a fixed transform between the measuring device and "
+    "the world frame): the base frame error absorbs it exactly",
+    "a constant tool or calibration-block offset: the tool frame error absorbs it exactly",
+)
+
+_NOISE_RATIO_DEFAULT = (1.0, 1e-3)  # mm, rad: the ratio used to weight when no noise is given
+
+
+def _as_arrays(arm: Arm, meas: Measurements):
+    dtype = jnp.asarray(arm.frames).dtype
+    q = jnp.asarray(meas.q, dtype)
+    T = jnp.asarray(meas.measured, dtype)
+    aux = {k: jnp.asarray(v, dtype) for k, v in meas.aux.items()}
+    return q, T, aux
+
+
+def _check(arm: Arm, meas: Measurements, folds: int, alpha: float) -> None:
+    if not isinstance(meas, Measurements):
+        raise ValueError(
+            "measurements must be a cdra_jax.io.Measurements (from load_measurements or "
+            f"Measurements.from_arrays), got {type(meas).__name__}"
+        )
+    if meas.measured is None:
+        raise ValueError(
+            f"{meas.source}: no measured tool poses (measured.x ... columns); a diagnosis needs "
+            "them"
+        )
+    if tuple(meas.state_names) != tuple(arm.state_names):
+        raise ValueError(
+            f"{meas.source}: module states {meas.state_names} do not match the model's "
+            f"{arm.state_names}"
+        )
+    if meas.m < MIN_POSES + 2:
+        raise ValueError(
+            f"{meas.source}: {meas.m} poses; a diagnosis needs at least {MIN_POSES + 2} (a "
+            "calibration on every cross-validation training set)"
+        )
+    if not (isinstance(folds, int) and folds >= 2):
+        raise ValueError(f"folds must be an integer >= 2, got {folds!r}")
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+
+
+def _estimates(
+    theta: np.ndarray, sigma: np.ndarray, cand: Candidate, arm: Arm
+) -> dict[str, ParameterEstimate]:
+    out = {}
+    for spec, v, s in zip(cand.parameters(arm), theta, sigma, strict=True):
+        half = 1.959963984540054 * float(s)
+        out[spec.name] = ParameterEstimate(
+            value=float(v),
+            low=float(v) - half,
+            high=float(v) + half,
+            unit=spec.unit,
+            range_low=float(spec.low),
+            range_high=float(spec.high),
+            description=spec.description,
+        )
+    return out
+
+
+def _linear_fit(r: np.ndarray, A: np.ndarray, scale_var: float) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum-norm ``y`` minimising ``|r + A y|`` and the standard deviation of each entry."""
+    An, s = stats._normalise_columns(A)
+    P, _ = stats.pinv(An)
+    y = -(P @ r) * s
+    sd = np.sqrt(np.maximum(np.sum(P * P, axis=1), 0.0) * scale_var) * s
+    return y, sd
+
+
+def _physical(ho: stats.HeldOut, noise: NoiseModel) -> np.ndarray:
+    """Held-out residuals in mm and rad, ``(m, 6)``: measured minus predicted (first order)."""
+    scale = np.array([float(noise.position_mm)] * 3 + [float(noise.rotation_rad)] * 3)
+    return ho.residual * scale
+
+
+def _errors(ho: stats.HeldOut, noise: NoiseModel, p_value: float | None) -> HeldOutErrors:
+    sp, sr = float(noise.position_mm), float(noise.rotation_rad)
+    dp = sp * np.sqrt(np.mean(np.sum(ho.residual[:, :3] ** 2, axis=1)))
+    dR = sr * np.sqrt(np.mean(np.sum(ho.residual[:, 3:] ** 2, axis=1)))
+    return HeldOutErrors(float(dp), float(dR), float(ho.statistic), p_value)
+
+
+def diagnose(
+    arm: Arm,
+    measurements: Measurements,
+    noise: NoiseModel | None,
+    *,
+    seed: int = 0,
+    folds: int = 5,
+    alpha: float = 0.01,
+    effects: Sequence[Effect] = VOCABULARY,
+) -> Diagnosis:
+    """Diagnose what a geometric calibration of ``arm`` leaves unexplained in ``measurements``.
+
+    Args:
+        arm: the nominal model (frames are the calibration's starting point; masses, cables,
+            pretension and stiffness feed the physics).
+        measurements: what :func:`cdra_jax.io.load_measurements` returns (module states,
+            measured tool poses, auxiliary columns ``time_s``, ``approach.<module>``,
+            ``payload_kg``).
+        noise: the measuring device's noise (position mm, rotation rad std). ``None``: the
+            noise scale is estimated from the fit (with a 1 mm : 1 mrad weighting), and only
+            the tests that need no noise value (lack of fit on repeated poses, candidate F
+            tests) detect a mismatch.
+        seed: seed of the cross-validation folds.
+        folds: number of cross-validation folds (poses are dealt at random).
+        alpha: significance level of the detection and of the (Holm-corrected) candidate tests.
+        effects: the candidate vocabulary (default: all seven effects of the design).
+
+    Returns:
+        A :class:`Diagnosis` (``to_dict()`` for JSON, ``report`` for the plain words).
+    """
+    _check(arm, measurements, folds, alpha)
+    meas = measurements
+    q, T, aux = _as_arrays(arm, meas)
+    m = meas.m
+    N = 6 * m
+    given = noise is not None
+    weight_noise = noise if noise is not None else NoiseModel(*_NOISE_RATIO_DEFAULT)
+    G = whitening(T, weight_noise)
+
+    # 1. geometric fit
+    sol = geometric_fit(arm, q, T, weight_noise)
+    fit_arm = arm.with_frames(sol.frames)
+
+    # 2. features of every evaluable candidate and probe, one Jacobian for all
+    table = candidates(arm, aux.keys(), effects)
+    live = [c for c, why in table if why is None]
+    probes = [c for c, why in candidates(arm, aux.keys(), PROBES) if why is None]
+    everything = tuple(live + probes)
+    sizes = [len(c.parameters(arm)) for c in everything]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    cols = {c: slice(int(offsets[i]), int(offsets[i + 1])) for i, c in enumerate(everything)}
+    F_all = all_features(everything, fit_arm, q, aux)
+    n_geo = arm.n_params
+    y0 = jnp.zeros(n_geo + F_all.n_params, q.dtype)
+    r, Jfull = residual_and_jacobian(y0, fit_arm, q, T, G, F_all)
+    r = np.asarray(r, float)
+    Jfull = np.asarray(Jfull, float)
+    D, J = Jfull[:, :n_geo], Jfull[:, n_geo:]
+    UD = stats.orthonormal_basis(D)
+    rank = UD.shape[1]
+    df_resid = N - rank
+    sigma_scale = 1.0
+    if not given:
+        sigma_scale = float(np.sqrt(max(r @ r, 1e-300) / max(df_resid, 1)))
+        r, D, J = r / sigma_scale, D / sigma_scale, J / sigma_scale
+    used_noise = NoiseModel(
+        float(weight_noise.position_mm) * sigma_scale,
+        float(weight_noise.rotation_rad) * sigma_scale,
+    )
+    fold = stats.fold_of_poses(m, folds, seed)
+
+    # 3. detection
+    ho0 = stats.heldout(r, D, fold, with_null=given)
+    p_heldout = ho0.p_value() if given else None
+    chi2_in = float(r @ r)
+    p_in = float(scipy.stats.chi2.sf(chi2_in, df_resid)) if given else None
+    groups = stats.repeat_groups(np.asarray(meas.q), REPEAT_TOL)
+    lof = stats.lack_of_fit(r, groups, df_resid)
+
+    # 4. candidate table: one row per (effect, location); its variants are alternatives
+    evals: dict[Candidate, dict] = {}
+    for c in live:
+        Jc = J[:, cols[c]]
+        proj = stats.project(Jc, UD)
+        Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid)
+        A = np.hstack([D, Jc])
+        gain = stats.heldout(r, A, fold).loglik - ho0.loglik if proj.df else None
+        evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A}
+    groups: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
+    for c, why in table:
+        groups.setdefault((c.name, c.location), []).append((c, why))
+    rows: list[CandidateRow] = []
+    chosen: dict[tuple[str, str], Candidate] = {}
+    group_p: dict[tuple[str, str], float] = {}
+    for key, members in groups.items():
+        ok = [c for c, why in members if why is None]
+        if not ok:
+            c0, why0 = members[0]
+            rows.append(CandidateRow(key[0], key[1], len(c0.parameters(arm)), skipped=why0))
+            continue
+        seen = [c for c in ok if evals[c]["df"] > 0] or ok
+        # The variant with the smallest p (ties: the largest gain), Bonferroni over the variants.
+        c = min(seen, key=lambda c: (evals[c]["p"], -(evals[c]["gain"] or -np.inf)))
+        chosen[key] = c
+        e = evals[c]
+        row = CandidateRow(key[0], key[1], len(c.parameters(arm)), variant=c.variant or None)
+        row.variants = [o.variant for o in ok] if len(ok) > 1 else []
+        row.absorbed_fraction = e["proj"].absorbed_fraction
+        row.df = e["df"]
+        row.statistic = e["F"] if e["df"] else None
+        row.heldout_gain = e["gain"]
+        row.p_value_raw = min(1.0, len(seen) * e["p"]) if e["df"] else 1.0
+        y_lin, sd_lin = _linear_fit(r, e["A"], 1.0)
+        row.parameters = _estimates(y_lin[n_geo:], sd_lin[n_geo:], c, arm)
+        rows.append(row)
+        if e["df"]:
+            group_p[key] = row.p_value_raw
+    keys = list(group_p)
+    adj = dict(zip(keys, stats.holm(np.array([group_p[k] for k in keys])), strict=True))
+    by_key = {(row.effect, row.location): row for row in rows}
+    for key, c in chosen.items():
+        row = by_key[key]
+        row.p_value = adj.get(key, 1.0)
+        row.indistinguishable_from = [
+            f"{o[0]}@{o[1]}"
+            for o in keys
+            if o != key
+            and key in group_p
+            and stats.indistinguishable(
+                evals[c]["proj"].basis, evals[chosen[o]]["proj"].basis, COS_INDISTINGUISHABLE
+            )
+        ]
+    p_family = min(adj.values(), default=1.0)
+
+    tests_used = {"candidates": p_family}
+    if p_heldout is not None:
+        tests_used["heldout_chi2"] = p_heldout
+    if lof is not None:
+        tests_used["lack_of_fit"] = lof[1]
+    p_value = min(1.0, len(tests_used) * min(tests_used.values()))
+    mismatch = p_value < alpha
+
+    # 5. selection, refit
+    effect_name = "none"
+    located_in: str | None = None
+    parameters: dict[str, ParameterEstimate] = {}
+    before = _errors(ho0, used_noise, p_heldout)
+    after = before
+    refit_info: dict = {}
+    best: Candidate | None = None
+    ho1: stats.HeldOut | None = None
+    significant = [
+        chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["gain"] or -1.0) > 0
+    ]
+    if mismatch and significant:
+        best = max(significant, key=lambda c: evals[c]["gain"])
+        refit_info, parameters, ho1, p_after = _refit(
+            best, cols[best], fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale
+        )
+        after = _errors(ho1, used_noise, p_after)
+        excess0 = ho0.statistic - N
+        explained = 1.0 - (ho1.statistic - N) / excess0 if excess0 > 0 else 1.0
+        refit_info["explained_fraction"] = float(explained)
+        if given and p_after is not None and p_after < alpha and explained < EXPLAINED_MIN:
+            effect_name = "unattributed"
+        else:
+            effect_name = best.name
+            located_in = best.location
+            by_key[(best.name, best.location)].selected = True
+            by_key[(best.name, best.location)].parameters = parameters
+    elif mismatch:
+        effect_name = "unattributed"
+
+    probe_rows = []
+    location_source = None if located_in is None else "candidate"
+    if effect_name == "unattributed":
+        probe_rows, located_in = _locate(probes, cols, r, J, UD, df_resid, alpha)
+        location_source = None if located_in is None else "probe"
+        if best is not None:
+            parameters = {}
+            if refit_info["explained_fraction"] >= LOCATE_MIN:
+                located_in, location_source = best.location, "partial candidate"
+
+    not_ident = list(ABSORBED_EXACTLY) + [
+        f"{row.label}: the frame errors absorb it for this pose set (absorbed fraction "
+        f"{row.absorbed_fraction:.4f})"
+        for row in rows
+        if row.skipped is None and row.df == 0
+    ]
+    floor = (
+        float(used_noise.position_mm) * float(np.sqrt(np.mean(np.sum(ho0.variance[:, :3], 1)))),
+        float(used_noise.rotation_rad) * float(np.sqrt(np.mean(np.sum(ho0.variance[:, 3:], 1)))),
+    )
+    diag = Diagnosis(
+        mismatch=bool(mismatch),
+        p_value=float(p_value),
+        effect=effect_name,
+        located_in=located_in,
+        parameters=parameters,
+        candidates=rows,
+        heldout_before=before,
+        heldout_after=after,
+        noise={
+            "position_mm": float(used_noise.position_mm),
+            "rotation_rad": float(used_noise.rotation_rad),
+            "source": "given" if given else "estimated",
+        },
+        not_identifiable_from_poses=not_ident,
+        tests={
+            "heldout_chi2": {
+                "statistic": ho0.statistic,
+                "expected": float(N),
+                "p_value": p_heldout,
+            },
+            "in_sample_chi2": {"statistic": chi2_in, "df": int(df_resid), "p_value": p_in},
+            "lack_of_fit": None
+            if lof is None
+            else {
+                "F": lof[0],
+                "p_value": lof[1],
+                "df_lack_of_fit": lof[2],
+                "df_pure_error": lof[3],
+                "repeated_groups": len(groups),
+            },
+            "candidates_min_p_holm": p_family,
+            "combined": {"p_value": p_value, "tests": sorted(tests_used), "rule": "Bonferroni"},
+        },
+        details={
+            "alpha": alpha,
+            "folds": int(fold.max() + 1),
+            "seed": seed,
+            "n_poses": m,
+            "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": floor[1]},
+            "geometric_fit": {
+                "converged": bool(sol.converged),
+                "iterations": int(sol.iterations),
+                "rank": int(rank),
+                "n_params": n_geo,
+            },
+            "refit": refit_info or None,
+            "probes": probe_rows,
+            "best_candidate": None if best is None else best.label,
+            "location_source": location_source,
+        },
+    )
+    diag.residuals = {
+        "pose_ids": list(meas.pose_ids),
+        "before": _physical(ho0, used_noise),
+        "after": _physical(ho1, used_noise) if ho1 is not None else _physical(ho0, used_noise),
+    }
+    diag.report = render_report(diag, best)
+    return diag
+
+
+def _refit(best, sl, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale):
+    """Joint LM refit of the frame errors and ``best``'s parameters (columns ``sl`` of the
+    features); returns ``(info, parameters, heldout, p_after)``."""
+    n_geo = D.shape[1]
+    free = np.concatenate([np.arange(n_geo), n_geo + np.arange(sl.start, sl.stop)])
+    A = np.hstack([D, J[:, sl]])
+    y_lin, _ = _linear_fit(r, A, 1.0)
+    n_all = n_geo + J.shape[1]
+    y0 = np.zeros(n_all)
+    y0[free] = y_lin
+    y, ok, steps = joint_refit(y0, free, fit_arm, q, T, G, F_all)
+    r1, J1 = residual_and_jacobian(jnp.asarray(y, q.dtype), fit_arm, q, T, G, F_all)
+    r1 = np.asarray(r1, float) / sigma_scale
+    J1 = np.asarray(J1, float)[:, free] / sigma_scale
+    U1 = stats.orthonormal_basis(J1)
+    dof = r1.size - U1.shape[1]
+    chi2 = float(r1 @ r1)
+    inflate = max(1.0, chi2 / max(dof, 1))
+    _, sd = _linear_fit(r1, J1, inflate)
+    y = np.asarray(y, float)[free]
+    params = _estimates(y[n_geo:], sd[n_geo:], best, arm)
+    ho1 = stats.heldout(r1, J1, fold, with_null=given)
+    p_after = ho1.p_value() if given else None
+    info = {
+        "candidate": best.label,
+        "converged": bool(ok),
+        "steps": int(steps),
+        "chi2": chi2,
+        "dof": int(dof),
+        "interval_inflation": float(np.sqrt(inflate)),
+        "frame_errors_change": {
+            name: [float(v) for v in y[6 * j : 6 * j + 6]] for j, name in enumerate(arm.frame_names)
+        },
+    }
+    return info, params, ho1, p_after
+
+
+def _locate(probes, cols, r, J, UD, df_resid, alpha):
+    """Generic probes: which location explains most of the residual (min Bonferroni p)."""
+    rows = []
+    for c in probes:
+        proj = stats.project(J[:, cols[c]], UD)
+        Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid)
+        rows.append({"location": c.location, "kind": c.effect.summary, "df": df1, "F": Fv, "p": p})
+    n = max(len(rows), 1)
+    for row in rows:
+        row["p_value"] = min(1.0, n * row.pop("p"))
+        row["F"] = None if not np.isfinite(row["F"]) else float(row["F"])
+    rows.sort(key=lambda row: (row["p_value"], -(row["F"] or 0.0)))
+    loc = rows[0]["location"] if rows and rows[0]["p_value"] < alpha else None
+    return rows, loc
+
+
+def diagnose_files(
+    model_path: str | os.PathLike | None,
+    data_path: str | os.PathLike,
+    noise_pos_mm: float | None,
+    noise_rot_rad: float | None,
+    **kw,
+) -> Diagnosis:
+    """:func:`diagnose` on a model TOML (``None``: the embedded CDRA) and a measurement CSV.
+
+    ``noise_pos_mm`` and ``noise_rot_rad`` go together (both ``None``: estimated, see
+    :func:`diagnose`); keywords are passed on.
+    """
+    from ..io import default_arm, load_measurements, load_model
+
+    if (noise_pos_mm is None) != (noise_rot_rad is None):
+        raise ValueError("noise_pos_mm and noise_rot_rad go together: give both or neither")
+    arm = default_arm() if model_path is None else load_model(model_path)
+    meas = load_measurements(data_path, arm)
+    noise = None
+    if noise_pos_mm is not None and noise_rot_rad is not None:
+        noise = NoiseModel(float(noise_pos_mm), float(noise_rot_rad))
+    return diagnose(arm, meas, noise, **kw)

@@ -1,0 +1,119 @@
+"""The plain-words report of a :class:`~cdra_jax.diagnosis.result.Diagnosis`."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..physics import Candidate
+    from .result import Diagnosis
+
+
+def _g(x: float | None, spec: str = ".3g") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def _p(p: float | None) -> str:
+    if p is None:
+        return "-"
+    return "< 1e-12" if p < 1e-12 else format(p, ".2g")
+
+
+def render_report(d: Diagnosis, best: Candidate | None) -> str:
+    """Plain-words text: the fit, the test, the answer, the improvement, the caveats."""
+    det = d.details
+    b, a = d.heldout_before, d.heldout_after
+    floor = det["noise_floor"]
+    t = d.tests
+    lines = [
+        f"Geometric calibration (24 frame errors, weighted Gauss-Newton) of {det['n_poses']} "
+        f"poses, {det['folds']}-fold cross-validated: held-out position error "
+        f"{b.delta_p_mm:.3g} mm, rotation {b.delta_R_rad:.3g} rad; noise floor "
+        f"{floor['delta_p_mm']:.3g} mm, {floor['delta_R_rad']:.3g} rad "
+        f"(noise {d.noise['source']}: {d.noise['position_mm']:.3g} mm, "
+        f"{d.noise['rotation_rad']:.3g} rad).",
+    ]
+    parts = []
+    ho = t["heldout_chi2"]
+    if ho["p_value"] is not None:
+        parts.append(
+            f"held-out chi-square {ho['statistic']:.1f} (expected {ho['expected']:.0f}), "
+            f"p = {_p(ho['p_value'])}"
+        )
+    if t["lack_of_fit"] is not None:
+        lof = t["lack_of_fit"]
+        parts.append(
+            f"lack of fit on {lof['repeated_groups']} repeated pose(s) F = {lof['F']:.3g}, "
+            f"p = {_p(lof['p_value'])}"
+        )
+    parts.append(f"best candidate test p = {_p(t['candidates_min_p_holm'])} (Holm)")
+    verdict = (
+        "is WORSE than the measuring device explains"
+        if d.mismatch
+        else "is consistent with the measuring device"
+    )
+    lines.append(
+        f"The fit {verdict}: {'; '.join(parts)}; combined p = {_p(d.p_value)} "
+        f"(alpha = {det['alpha']:g})."
+    )
+    if d.effect == "none":
+        lines.append("No missing physics detected: the geometric model explains the recordings.")
+    elif d.effect == "unattributed":
+        msg = "The misfit is not explained by any effect of the vocabulary"
+        if best is not None and det.get("refit"):
+            msg += (
+                f" (the best candidate, {best.label}, removes only "
+                f"{100 * det['refit']['explained_fraction']:.0f} % of the excess held-out misfit)"
+            )
+        msg += "."
+        if d.located_in and det.get("location_source") == "probe":
+            top = det["probes"][0]
+            msg += (
+                f" It belongs to the {d.located_in} (generic probe: {top['kind']}, "
+                f"p = {_p(top['p_value'])})."
+            )
+        elif d.located_in:
+            msg += (
+                f" It belongs to the {d.located_in}, where the best candidate sits: an effect "
+                "of that kind but of another form than the vocabulary's."
+            )
+        else:
+            msg += " No single location explains it."
+        lines.append(msg)
+    else:
+        assert best is not None
+        values = {k: (v.value, v.low, v.high) for k, v in d.parameters.items()}
+        text = best.effect.describe(best.location, values)
+        lines.append(f"Most likely missing physics: {text}.")
+        lines.append(
+            f"Held-out position error {b.delta_p_mm:.3g} -> {a.delta_p_mm:.3g} mm, rotation "
+            f"{b.delta_R_rad:.3g} -> {a.delta_R_rad:.3g} rad; noise floor "
+            f"{floor['delta_p_mm']:.3g} mm."
+        )
+        if a.p_value is not None and a.p_value < det["alpha"]:
+            lines.append(
+                f"A misfit remains after the refit (held-out p = {_p(a.p_value)}); the effect "
+                f"removes {100 * det['refit']['explained_fraction']:.0f} % of the excess."
+            )
+        bad = [k for k, v in d.parameters.items() if not v.plausible]
+        if bad:
+            lines.append(
+                "Outside the physically plausible range: " + ", ".join(bad) + " (check units, "
+                "or the effect is a stand-in for another one)."
+            )
+        row = next(c for c in d.candidates if c.selected)
+        if row.indistinguishable_from:
+            lines.append(
+                "This pose set cannot tell it apart from: "
+                + ", ".join(row.indistinguishable_from)
+                + " (add poses that separate them)."
+            )
+    nid = [c.label for c in d.candidates if c.skipped is None and c.df == 0]
+    if nid:
+        lines.append(
+            "Not identifiable from these poses (absorbed by the frames): " + ", ".join(nid)
+        )
+    skipped = [f"{c.label} ({c.skipped})" for c in d.candidates if c.skipped]
+    if skipped:
+        lines.append("Not tried: " + "; ".join(skipped) + ".")
+    return "\n".join(lines)

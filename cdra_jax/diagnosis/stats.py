@@ -1,0 +1,312 @@
+"""Statistics of the diagnosis on the linearised, whitened calibration problem (numpy).
+
+Notation: ``r (N,)`` is the whitened residual (``N = 6 m``, unit variance per entry under the
+stated noise model) at a fit, ``A (N, k)`` the whitened Jacobian of the fitted parameters
+(the 24 frame errors, plus a candidate's physical parameters). Rows come in blocks of 6 per
+pose; cross-validation folds split poses, never the 6 rows of one pose.
+
+Held-out test. For fold ``f`` the parameters are refitted on the other folds (minimum-norm
+least squares), ``x_-f = A_-f^+ r_-f``, and the held-out residual ``e_f = r_f - A_f x_-f`` has,
+under the model with unit noise, the predictive covariance ``S_f = I + A_f C_-f A_f^T`` with
+``C_-f = (A_-f^T A_-f)^+`` (the parameter uncertainty of the refit). The statistic
+``Q = sum_f e_f^T S_f^-1 e_f`` is a quadratic form ``e^T W^T W e`` of the standard normal noise
+``e`` (the true parameters cancel: the unidentifiable directions of the frame errors are the
+same for every pose), so ``Q ~ sum_k lambda_k chi2_1`` with ``lambda_k`` the squared singular
+values of ``W``; its tail is computed exactly by Imhof's integral (:func:`quadratic_form_sf`).
+The folds overlap in their training sets, so ``Q`` is *not* ``chi2(N)``; its mean is ``N``.
+
+Candidate tests. A candidate's columns ``J`` are projected on the orthogonal complement of the
+geometric ones, ``(I - P_D) J``; directions of ``J`` whose visible fraction
+``|(I - P_D) J v|^2 / |J v|^2`` is below 1e-3 (absorbed fraction > 0.999) cannot be seen in
+poses and are dropped. On the remaining ``k`` directions (orthonormal basis ``B``) the extra
+sum of squares ``T = |B^T r|^2`` gives the F statistic
+``F = (T / k) / ((|r|^2 - T) / (N - rank(D) - k))`` (exact for the linear Gaussian model,
+independent of the noise scale), corrected over the candidates by Holm's step-down method.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.integrate
+import scipy.optimize
+import scipy.stats
+
+_RCOND = 1e-10
+VISIBLE_MIN = 1e-3
+"""A direction whose visible fraction is below this (absorbed > 0.999) is not identifiable."""
+
+
+def fold_of_poses(m: int, folds: int, seed: int) -> np.ndarray:
+    """Fold index ``(m,)`` of each pose: a seeded random permutation dealt into ``folds``."""
+    if folds < 2:
+        raise ValueError(f"folds must be at least 2, got {folds}")
+    k = min(folds, m)
+    perm = np.random.default_rng(seed).permutation(m)
+    out = np.empty(m, int)
+    out[perm] = np.arange(m) % k
+    return out
+
+
+def _normalise_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n = np.linalg.norm(A, axis=0)
+    s = np.where(n > 0, 1.0 / np.where(n > 0, n, 1.0), 1.0)
+    return A * s, s
+
+
+def pinv(A: np.ndarray, rcond: float = _RCOND) -> tuple[np.ndarray, int]:
+    """Pseudo-inverse with a relative singular-value cut-off, and the numerical rank."""
+    if A.shape[1] == 0:
+        return np.zeros((0, A.shape[0])), 0
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    keep = s > rcond * (s[0] if s.size else 0.0)
+    return (Vt[keep].T / s[keep]) @ U[:, keep].T, int(keep.sum())
+
+
+def orthonormal_basis(A: np.ndarray, rcond: float = _RCOND) -> np.ndarray:
+    """Orthonormal basis ``(N, rank)`` of the column space of ``A`` (columns normalised first)."""
+    if A.shape[1] == 0:
+        return np.zeros((A.shape[0], 0))
+    U, s, _ = np.linalg.svd(_normalise_columns(A)[0], full_matrices=False)
+    return U[:, s > rcond * s[0]] if s.size and s[0] > 0 else np.zeros((A.shape[0], 0))
+
+
+@dataclass
+class HeldOut:
+    """Cross-validated prediction of a linear model (see the module docstring).
+
+    Attributes:
+        residual: ``(m, 6)`` held-out whitened residual of each pose.
+        variance: ``(m, 6)`` its predictive variance (diagonal of ``S_f``).
+        statistic: ``Q``.
+        loglik: held-out Gaussian log-likelihood ``-(Q + sum log det S_f + N log 2 pi) / 2``.
+        weights: ``lambda_k`` of the null distribution of ``Q`` (when requested), else None.
+    """
+
+    residual: np.ndarray
+    variance: np.ndarray
+    statistic: float
+    loglik: float
+    weights: np.ndarray | None = None
+
+    def p_value(self) -> float:
+        """``P(Q' >= Q)`` under the model (needs ``weights``)."""
+        if self.weights is None:
+            raise ValueError("held-out null weights were not computed (with_null=False)")
+        return quadratic_form_sf(self.statistic, self.weights)
+
+
+def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool = False) -> HeldOut:
+    """K-fold held-out residuals and statistic of the linear model ``r ~ A x`` (unit noise).
+
+    Args:
+        r: ``(6 m,)`` whitened residual.
+        A: ``(6 m, k)`` whitened Jacobian.
+        fold: ``(m,)`` fold of each pose (:func:`fold_of_poses`).
+        with_null: also compute the weights of the null distribution of ``Q``.
+    """
+    N = r.shape[0]
+    rows = np.repeat(fold, 6)
+    An, _ = _normalise_columns(A)
+    res = np.zeros(N)
+    var = np.zeros(N)
+    Q = 0.0
+    logdet = 0.0
+    W = np.zeros((N, N)) if with_null else None
+    for f in np.unique(fold):
+        te = rows == f
+        tr = ~te
+        P, _ = pinv(An[tr])
+        At = An[te]
+        e = r[te] - At @ (P @ r[tr])
+        G = At @ P  # (n_te, n_tr): prediction from the training residual
+        S = np.eye(int(te.sum())) + G @ G.T
+        L = np.linalg.cholesky(S)
+        z = np.linalg.solve(L, e)
+        Q += float(z @ z)
+        logdet += 2.0 * float(np.sum(np.log(np.diag(L))))
+        res[te] = e
+        var[te] = np.diag(S)
+        if W is not None:
+            B = np.zeros((int(te.sum()), N))
+            B[:, te] = np.eye(int(te.sum()))
+            B[:, tr] = -G
+            W[te] = np.linalg.solve(L, B)
+    weights = None
+    if W is not None:
+        weights = np.linalg.svd(W, compute_uv=False) ** 2
+    loglik = -0.5 * (Q + logdet + N * np.log(2 * np.pi))
+    return HeldOut(res.reshape(-1, 6), var.reshape(-1, 6), Q, float(loglik), weights)
+
+
+def quadratic_form_sf(x: float, weights: np.ndarray) -> float:
+    """``P(sum_k w_k z_k^2 > x)`` for independent standard normal ``z_k`` (Imhof 1961).
+
+    ``P = 1/2 + (1/pi) int_0^inf sin(th(u)) / (u rho(u)) du`` with
+    ``th(u) = sum atan(w_k u) / 2 - x u / 2`` and ``rho(u) = prod (1 + w_k^2 u^2)^(1/4)``.
+    Accurate to ~1e-10 absolute; beyond that (a Chernoff bound below 1e-9) the Chernoff upper
+    bound is returned, and with fewer than 10 non-zero weights a seeded Monte Carlo estimate
+    (4e5 draws).
+    """
+    w = np.asarray(weights, float)
+    w = w[w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)]
+    if w.size == 0:
+        return 1.0 if x < 0 else 0.0
+    if x <= 0:
+        return 1.0
+    bound = _chernoff_sf(x, w)
+    if bound < 1e-9:  # far in the tail: the bound is all the precision a p-value needs
+        return bound
+    if w.size < 10:  # Imhof's integrand decays too slowly; a seeded Monte Carlo is enough here
+        z = np.random.default_rng(0).standard_normal((400_000, w.size))
+        return float(np.mean((z * z) @ w > x))
+
+    def integrand(u: float) -> float:
+        if u == 0.0:
+            return 0.5 * (float(w.sum()) - x)
+        wu = w * u
+        th = 0.5 * float(np.sum(np.arctan(wu))) - 0.5 * x * u
+        log_rho = 0.25 * float(np.sum(np.log1p(wu * wu)))
+        return float(np.sin(th) * np.exp(-log_rho) / u)
+
+    # The integrand decays like u^(-1 - n/2): integrate piecewise on [0, U] with U where
+    # rho(U) > 1e30, on pieces that double in length (each holds a few oscillations at most).
+    edges = [0.0, 0.5 / float(w.max())]
+    while 0.25 * float(np.sum(np.log1p((w * edges[-1]) ** 2))) < 70.0 and edges[-1] < 1e12:
+        edges.append(2.0 * edges[-1])
+    val = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", scipy.integrate.IntegrationWarning)
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            piece, _ = scipy.integrate.quad(integrand, a, b, limit=400, epsabs=1e-13, epsrel=1e-10)
+            val += piece
+    return float(np.clip(min(0.5 + val / np.pi, bound), 0.0, 1.0))
+
+
+def _chernoff_sf(x: float, w: np.ndarray) -> float:
+    """Chernoff upper bound ``min_t exp(-t x) E[exp(t Q)]`` of ``P(Q > x)``: far in the tail,
+    where the oscillating Imhof integral loses its digits, it is the sharper of the two."""
+    if x <= float(w.sum()):
+        return 1.0
+    t_max = 0.5 / float(w.max())
+
+    def log_bound(t: float) -> float:
+        return -t * x - 0.5 * float(np.sum(np.log1p(-2.0 * t * w)))
+
+    res = scipy.optimize.minimize_scalar(
+        log_bound, bounds=(0.0, t_max * (1 - 1e-12)), method="bounded"
+    )
+    return float(np.exp(min(res.fun, 0.0)))
+
+
+def holm(p: np.ndarray) -> np.ndarray:
+    """Holm step-down adjusted p-values (controls the family-wise error rate)."""
+    p = np.asarray(p, float)
+    n = p.size
+    order = np.argsort(p, kind="stable")
+    adj = np.empty(n)
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (n - rank) * p[i]))
+        adj[i] = running
+    return adj
+
+
+@dataclass
+class Projection:
+    """A candidate's columns with the geometric part projected out.
+
+    Attributes:
+        basis: ``(N, k)`` orthonormal basis of the visible projected directions.
+        absorbed_fraction: ``1 - max visible fraction`` (1: entirely absorbed by the frames).
+        visible: visible fraction of each direction of the candidate's column space.
+    """
+
+    basis: np.ndarray
+    absorbed_fraction: float
+    visible: np.ndarray
+
+    @property
+    def df(self) -> int:
+        return int(self.basis.shape[1])
+
+
+def project(J: np.ndarray, UD: np.ndarray) -> Projection:
+    """Project ``J (N, p)`` on the complement of the orthonormal geometric basis ``UD (N, r)``."""
+    UJ = orthonormal_basis(J)
+    if UJ.shape[1] == 0:
+        return Projection(np.zeros((J.shape[0], 0)), 1.0, np.zeros(0))
+    Pj = UJ - UD @ (UD.T @ UJ)
+    U, s, _ = np.linalg.svd(Pj, full_matrices=False)
+    vis = s * s
+    keep = vis > VISIBLE_MIN
+    return Projection(U[:, keep], float(1.0 - vis.max()), vis)
+
+
+def f_test(r: np.ndarray, basis: np.ndarray, df_resid: int) -> tuple[float, float, int, int]:
+    """``(F, p, df1, df2)`` for adding the projected directions ``basis`` to the fit."""
+    k = basis.shape[1]
+    df2 = df_resid - k
+    if k == 0 or df2 <= 0:
+        return float("nan"), 1.0, k, df2
+    T = float(np.sum((basis.T @ r) ** 2))
+    rest = max(float(r @ r) - T, 1e-300)
+    F = (T / k) / (rest / df2)
+    return F, float(scipy.stats.f.sf(F, k, df2)), k, df2
+
+
+def principal_cosines(Ba: np.ndarray, Bb: np.ndarray) -> np.ndarray:
+    """Cosines of the principal angles between two orthonormal bases, decreasing."""
+    if Ba.shape[1] == 0 or Bb.shape[1] == 0:
+        return np.zeros(0)
+    return np.clip(np.linalg.svd(Ba.T @ Bb, compute_uv=False), 0.0, 1.0)
+
+
+def indistinguishable(Ba: np.ndarray, Bb: np.ndarray, cos_min: float = 0.98) -> bool:
+    """One projected space lies (nearly) inside the other: all ``min(ka, kb)`` cosines > cos_min."""
+    c = principal_cosines(Ba, Bb)
+    return bool(c.size and c.min() > cos_min)
+
+
+def repeat_groups(q: np.ndarray, tol: float) -> list[np.ndarray]:
+    """Groups (index arrays, size >= 2) of poses whose module states agree within ``tol``."""
+    m = q.shape[0]
+    seen = np.zeros(m, bool)
+    out = []
+    for i in range(m):
+        if seen[i]:
+            continue
+        same = np.all(np.abs(q - q[i]) <= tol, axis=1) & ~seen
+        idx = np.flatnonzero(same)
+        seen[idx] = True
+        if idx.size > 1:
+            out.append(idx)
+    return out
+
+
+def lack_of_fit(
+    r: np.ndarray, groups: list[np.ndarray], df_resid: int
+) -> tuple[float, float, int, int] | None:
+    """Lack-of-fit F test from repeated poses: ``(F, p, df_lof, df_pure)`` or None.
+
+    Pure error: scatter of the whitened residuals within each group of repeats (6 entries per
+    pose); lack of fit: the rest of the residual sum of squares. Needs no noise value (only
+    the ratio of position to orientation noise enters through the whitening).
+    """
+    if not groups:
+        return None
+    R = r.reshape(-1, 6)
+    ss_pe = 0.0
+    df_pe = 0
+    for g in groups:
+        d = R[g] - R[g].mean(axis=0)
+        ss_pe += float(np.sum(d * d))
+        df_pe += 6 * (g.size - 1)
+    df_lof = df_resid - df_pe
+    if df_lof <= 0 or df_pe <= 0:
+        return None
+    ss_lof = max(float(r @ r) - ss_pe, 0.0)
+    F = (ss_lof / df_lof) / max(ss_pe / df_pe, 1e-300)
+    return F, float(scipy.stats.f.sf(F, df_lof, df_pe)), df_lof, df_pe

@@ -1,0 +1,789 @@
+"""Measurement files (CSV): module states and measured tool poses, one row per measured pose.
+
+Format (see the README for a complete example)::
+
+    # comment lines (starting with '#') may precede the header; they are kept
+    pose,shoulder.rx,shoulder.ry,shoulder.rz,elbow.q,wrist.rx,wrist.ry,wrist.rz,measured.x,...
+    p01,0.1,-0.2,0.3,1.2,0.0,0.1,-0.1,101.5,...
+
+Columns (any order; the order is kept when the file is written back):
+
+* ``pose``: a unique identifier, kept as text (``007`` stays ``007``).
+* The state of every module of the arm, either joint coordinates, ``<module>.rx .ry .rz``
+  (spherical: rotation vector of the platform in the module base frame, rad) or ``<module>.q``
+  (revolute: rad; prismatic: mm), or cable lengths ``<module>.l1 ... <module>.lN`` (mm; recognised
+  but not supported yet, see :mod:`.state_sources`).
+* The measured tool pose in the world frame: ``measured.x .y .z`` (mm) and either
+  ``measured.rx .ry .rz`` (rotation vector, rad) or ``measured.qw .qx .qy .qz`` (unit quaternion,
+  scalar first). A quaternion whose norm is within 1e-6 of 1 is normalised for the pose
+  matrix (the file values are kept as given); beyond that it is an error.
+* Optional auxiliaries: ``time_s``, ``approach.<module>`` (+1 or -1, the sign of the last motion),
+  ``payload_kg``, ``temperature_c``.
+
+Every cell except ``pose`` must be a finite number. Errors are :class:`MeasurementFileError`
+(a ``ValueError``) naming the file, the line and the column. The reader accepts any number of
+rows; :func:`check_pose_count` enforces the calibration's minimum of 4 (Section IV, Eq. 9).
+
+Writing is lossless: numbers are written with ``repr`` (the shortest text that reads back to
+the same float64), identifiers and comments as given, columns in their order. Files are written
+atomically and an existing file is only replaced with ``force=True``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import math
+import os
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import jax
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from .. import lie
+from ..arm import Arm
+from ..calibration.validation import MIN_POSES
+from .files import write_text_atomic
+from .state_sources import STATE_SOURCES, StateSource
+
+POSE_COLUMN = "pose"
+POSITION_COLUMNS = ("measured.x", "measured.y", "measured.z")
+ROTVEC_COLUMNS = ("measured.rx", "measured.ry", "measured.rz")
+QUATERNION_COLUMNS = ("measured.qw", "measured.qx", "measured.qy", "measured.qz")
+AUX_COLUMNS = ("time_s", "payload_kg", "temperature_c")
+"""Auxiliary columns besides ``approach.<module>``."""
+QUATERNION_TOL = 1e-6
+#: Largest accepted rotation-vector angle (rad).  Far beyond any rotation vector in radians
+#: (even one written in degrees stays below ~312), and small enough that ``sin``/``cos`` of it
+#: keep full double precision, so the rotation built from it is orthonormal to 1e-12.
+ROTVEC_MAX_ANGLE = 1e3
+"""A measured quaternion is accepted (and normalised) when ``| |q| - 1 | <= QUATERNION_TOL``."""
+_ORTHO_TOL = 1e-6
+
+Orientation = Literal["rotvec", "quaternion"]
+
+
+class MeasurementFileError(ValueError):
+    """A measurement file is malformed; the message names the file, the line and the column.
+
+    Attributes:
+        source: the file name (or ``"<measurements>"`` for text).
+        line: 1-based line number in the file, or ``None``.
+        column: the column name, or ``None``.
+    """
+
+    def __init__(
+        self,
+        source: str,
+        what: str,
+        *,
+        line: int | None = None,
+        column: str | None = None,
+        header: bool = False,
+    ):
+        self.source, self.line, self.column, self.what = source, line, column, what
+        where = [source]
+        if line is not None:
+            where.append(f"line {line} (header row)" if header else f"line {line}")
+        if column is not None:
+            where.append(f"column {column!r}")
+        super().__init__(f"{', '.join(where)}: {what}")
+
+
+@dataclass(frozen=True)
+class RowContext:
+    """Where the rows handed to a state source came from, to build precise errors.
+
+    Attributes:
+        source: file name.
+        header_line: 1-based line of the header row.
+        lines: 1-based line of each data row.
+    """
+
+    source: str
+    header_line: int
+    lines: tuple[int, ...]
+
+    def error(self, what: str, *, column: str | None = None, row: int | None = None):
+        """A :class:`MeasurementFileError` at data row ``row`` (0-based), or the header."""
+        line = self.header_line if row is None else self.lines[row]
+        return MeasurementFileError(self.source, what, line=line, column=column, header=row is None)
+
+
+@dataclass(frozen=True, eq=False)
+class Measurements:
+    """The content of a measurement file.
+
+    Attributes:
+        pose_ids: the ``pose`` identifiers, as text, ``(m,)``.
+        q: module states ``(m, dof)`` in ``state_names`` order (``arm.state_names``).
+        measured: measured tool poses ``(m, 4, 4)`` in the world frame (mm), or ``None`` for a
+            pose plan without measured columns.
+        aux: auxiliary columns (``time_s``, ``approach.<module>``, ``payload_kg``,
+            ``temperature_c``) present in the file, name -> ``(m,)`` float array, as given.
+        state_names: the column name of each entry of ``q``.
+        columns: every column, in file order (``pose`` included); the order of writing.
+        values: every numeric column as given in the file, name -> ``(m,)`` float array.
+        comments: the ``#`` lines before the header, without the ``#`` (and one space after it).
+        source: the file name (for messages).
+        lines: 1-based line of each row in ``source`` (for messages), ``(m,)``.
+    """
+
+    pose_ids: tuple[str, ...]
+    q: np.ndarray
+    measured: np.ndarray | None
+    aux: Mapping[str, np.ndarray]
+    state_names: tuple[str, ...]
+    columns: tuple[str, ...]
+    values: Mapping[str, np.ndarray]
+    comments: tuple[str, ...] = ()
+    source: str = "<measurements>"
+    lines: tuple[int, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        m = len(self.pose_ids)
+        if self.q.shape != (m, len(self.state_names)):
+            raise ValueError(
+                f"Measurements: q must be (m, dof) = ({m}, {len(self.state_names)}), "
+                f"got {self.q.shape}"
+            )
+        if self.measured is not None and self.measured.shape != (m, 4, 4):
+            raise ValueError(
+                f"Measurements: measured must be ({m}, 4, 4), got {self.measured.shape}"
+            )
+        numeric = [c for c in self.columns if c != POSE_COLUMN]
+        if sorted(numeric) != sorted(self.values) or POSE_COLUMN not in self.columns:
+            raise ValueError(
+                f"Measurements: columns {self.columns} do not match values {tuple(self.values)}"
+            )
+        if not self.lines:
+            object.__setattr__(self, "lines", tuple(range(1, m + 1)))
+
+    def __len__(self) -> int:
+        return len(self.pose_ids)
+
+    @property
+    def m(self) -> int:
+        """Number of poses (rows)."""
+        return len(self.pose_ids)
+
+    @property
+    def orientation(self) -> Orientation | None:
+        """How the measured orientation is given: ``"rotvec"``, ``"quaternion"`` or ``None``."""
+        if ROTVEC_COLUMNS[0] in self.values:
+            return "rotvec"
+        if QUATERNION_COLUMNS[0] in self.values:
+            return "quaternion"
+        return None
+
+    def select(self, rows: Sequence[int] | np.ndarray) -> Measurements:
+        """The measurements of the given rows (indices or a boolean mask), in that order."""
+        idx = np.arange(self.m)[np.asarray(rows)]
+        return dataclasses.replace(
+            self,
+            pose_ids=tuple(self.pose_ids[i] for i in idx),
+            q=self.q[idx],
+            measured=None if self.measured is None else self.measured[idx],
+            aux={k: v[idx] for k, v in self.aux.items()},
+            values={k: v[idx] for k, v in self.values.items()},
+            lines=tuple(self.lines[i] for i in idx),
+        )
+
+    @classmethod
+    def from_arrays(
+        cls,
+        arm: Arm,
+        q: ArrayLike,
+        measured: ArrayLike | None = None,
+        *,
+        pose_ids: Sequence[str] | None = None,
+        orientation: Orientation = "rotvec",
+        aux: Mapping[str, ArrayLike] | None = None,
+        comments: Iterable[str] = (),
+        cable_lengths: Mapping[str, ArrayLike] | None = None,
+    ) -> Measurements:
+        """Measurements from arrays (joint coordinates; measured orientation as ``orientation``).
+
+        Args:
+            arm: the model (gives the state columns and module names).
+            q: ``(m, dof)`` module states in ``arm.state_names`` order.
+            measured: ``(m, 4, 4)`` measured tool poses, or ``None`` (a pose plan).
+            pose_ids: ``m`` unique non-empty identifiers (default ``p01``, ``p02``, ...).
+            orientation: write the measured rotation as ``"rotvec"`` or ``"quaternion"``
+                (``qw >= 0``).
+            aux: auxiliary columns, name -> ``(m,)``.
+            comments: comment lines (without ``#``).
+            cable_lengths: ``{module: (m, n)}`` measured cable lengths (mm); those modules are
+                written as ``<module>.l1 ... <module>.lN`` columns instead of joint coordinates
+                (``q`` is kept as the states the lengths were measured at).
+        """
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != arm.dof:
+            raise ValueError(
+                f"q must have shape (m, {arm.dof}) with columns {arm.state_names}, got {q.shape}"
+            )
+        m = q.shape[0]
+        if pose_ids is None:
+            width = max(2, len(str(m)))
+            pose_ids = [f"p{i + 1:0{width}d}" for i in range(m)]
+        pose_ids = tuple(str(p) for p in pose_ids)
+        if len(pose_ids) != m:
+            raise ValueError(f"pose_ids: expected {m} identifiers, got {len(pose_ids)}")
+        _check_ids(pose_ids, lambda i, what: ValueError(f"pose_ids[{i}]: {what}"))
+        if not np.all(np.isfinite(q)):
+            raise ValueError("q contains NaN or inf")
+        values: dict[str, np.ndarray] = {n: q[:, j].copy() for j, n in enumerate(arm.state_names)}
+        columns = [POSE_COLUMN]
+        cables = dict(cable_lengths or {})
+        for mod in arm.modules:
+            if mod.name not in cables:
+                columns += mod.state_names
+                continue
+            L = np.asarray(cables.pop(mod.name), dtype=float)
+            if L.shape != (m, mod.n_cables) or mod.n_cables == 0:
+                raise ValueError(
+                    f"cable_lengths[{mod.name!r}]: expected shape ({m}, {mod.n_cables}) "
+                    f"(module cables in the model), got {L.shape}"
+                )
+            for n in mod.state_names:
+                del values[n]
+            for j in range(mod.n_cables):
+                values[f"{mod.name}.l{j + 1}"] = L[:, j].copy()
+                columns.append(f"{mod.name}.l{j + 1}")
+        if cables:
+            raise ValueError(f"cable_lengths: unknown modules {sorted(cables)}")
+        T = None
+        if measured is not None:
+            T = np.asarray(measured, dtype=float)
+            _check_poses(T, m)
+            rv, quat = (np.asarray(a, dtype=float) for a in _rotvec_quaternion(T))
+            names: tuple[str, ...]
+            if orientation == "rotvec":
+                rot, names = rv, ROTVEC_COLUMNS
+            elif orientation == "quaternion":
+                rot = np.where(quat[:, :1] < 0, -quat, quat)
+                names = QUATERNION_COLUMNS
+            else:
+                raise ValueError(
+                    f"orientation must be 'rotvec' or 'quaternion', got {orientation!r}"
+                )
+            for j, n in enumerate(POSITION_COLUMNS):
+                values[n] = T[:, j, 3].copy()
+            for j, n in enumerate(names):
+                values[n] = rot[:, j]
+            columns += [*POSITION_COLUMNS, *names]
+        aux_out: dict[str, np.ndarray] = {}
+        for name, v in (aux or {}).items():
+            if not _is_aux(name, arm):
+                raise ValueError(f"aux: unknown auxiliary column {name!r}; known: {_aux_text(arm)}")
+            a = np.asarray(v, dtype=float)
+            if a.shape != (m,) or not np.all(np.isfinite(a)):
+                raise ValueError(f"aux[{name!r}]: expected {m} finite numbers, got shape {a.shape}")
+            if name.startswith("approach.") and not np.all(np.abs(a) == 1.0):
+                raise ValueError(f"aux[{name!r}]: approach directions must be +1 or -1")
+            aux_out[name] = a.copy()
+            values[name] = aux_out[name]
+            columns.append(name)
+        return cls(
+            pose_ids=pose_ids,
+            q=q.copy(),
+            measured=T,
+            aux=aux_out,
+            state_names=arm.state_names,
+            columns=tuple(columns),
+            values=values,
+            comments=tuple(comments),
+            source="<arrays>",
+        )
+
+
+# Compiled once per row count: much faster than dispatching the small ops one by one.
+@jax.jit
+def _poses_from_rotvec(xyz: Array, rotvec: Array) -> Array:
+    return lie.make_pose(lie.so3_exp(rotvec), xyz)
+
+
+@jax.jit
+def _poses_from_quaternion(xyz: Array, quat: Array) -> Array:
+    return lie.make_pose(lie.quaternion_to_rotation(quat), xyz)
+
+
+@jax.jit
+def _rotvec_quaternion(T: Array) -> tuple[Array, Array]:
+    return lie.so3_log(lie.rotation(T)), lie.rotation_to_quaternion(lie.rotation(T))
+
+
+def rigid_transform_problem(T: ArrayLike, tol: float = _ORTHO_TOL) -> str | None:
+    """What keeps a 4x4 matrix from being a rigid transform ``[[R, p], [0, 1]]``, or ``None``.
+
+    Checks the shape, finiteness, the last row, orthonormality of ``R`` (``max |R^T R - I|``
+    up to ``tol``) and handedness (``det R = +1``; a reflection is a left-handed frame).
+    """
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "contains NaN or inf"
+    if np.any(T[3] != np.array([0.0, 0.0, 0.0, 1.0])):
+        return f"last row must be [0, 0, 0, 1], got {T[3].tolist()}"
+    R = T[:3, :3]
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if dev > tol:
+        return (
+            f"rotation block is not orthonormal (max |R^T R - I| = {dev:.2e}): a scaled or "
+            "sheared matrix, or one written with too few digits?"
+        )
+    if np.linalg.det(R) < 0:
+        return (
+            "rotation block is a reflection (det R = -1, a left-handed frame): is one axis of "
+            "the measuring device or of the exported frame flipped?"
+        )
+    return None
+
+
+def _check_poses(T: np.ndarray, m: int) -> None:
+    if T.shape != (m, 4, 4):
+        raise ValueError(f"measured must have shape ({m}, 4, 4), got {T.shape}")
+    for i in range(m):
+        problem = rigid_transform_problem(T[i])
+        if problem:
+            raise ValueError(
+                f"measured[{i}]: measured poses must be rigid transforms [[R, p], [0, 1]]; "
+                f"{problem}"
+            )
+
+
+def _check_ids(ids: Sequence[str], err) -> None:
+    seen: dict[str, int] = {}
+    for i, p in enumerate(ids):
+        if not p.strip():
+            raise err(i, "empty pose identifier")
+        if p in seen:
+            raise err(i, f"duplicate pose identifier {p!r} (first used in row {seen[p] + 1})")
+        seen[p] = i
+
+
+def _is_aux(name: str, arm: Arm) -> bool:
+    if name in AUX_COLUMNS:
+        return True
+    return name.startswith("approach.") and name[len("approach.") :] in arm.module_names
+
+
+def _aux_text(arm: Arm) -> str:
+    return ", ".join([*AUX_COLUMNS, *(f"approach.{m}" for m in arm.module_names)])
+
+
+def _columns_text(arm: Arm) -> str:
+    parts = [POSE_COLUMN]
+    for mod in arm.modules:
+        parts.append(" | ".join(s.expected_text(mod) for s in STATE_SOURCES))
+    parts += [
+        ", ".join(POSITION_COLUMNS),
+        ", ".join(ROTVEC_COLUMNS) + " | " + ", ".join(QUATERNION_COLUMNS),
+    ]
+    parts.append("optional " + _aux_text(arm))
+    return "; ".join(parts)
+
+
+class _Lines:
+    """Feeds lines to ``csv.reader`` and remembers the first physical line of each record."""
+
+    def __init__(self, lines: Sequence[str], first_line: int):
+        self._lines = lines
+        self._i = 0
+        self.first_line = first_line  # 1-based line number of _lines[0]
+        self.record_start = first_line
+        self.record_text = ""
+        self._in_record = False
+
+    def __iter__(self) -> Iterator[str]:
+        return self
+
+    def __next__(self) -> str:
+        if self._i >= len(self._lines):
+            raise StopIteration
+        line = self._lines[self._i]
+        if not self._in_record:
+            self.record_start = self.first_line + self._i
+            self.record_text = line
+            self._in_record = True
+        self._i += 1
+        return line
+
+    def end_record(self) -> None:
+        self._in_record = False
+
+
+def loads_measurements(
+    text: str, arm: Arm, *, source: str = "<measurements>", require_measured: bool = True
+) -> Measurements:
+    """Parse measurement CSV text for the model ``arm`` (see the module docstring).
+
+    Args:
+        text: the file content.
+        arm: the model; gives the module names, kinds and the order of ``q``.
+        source: file name used in error messages.
+        require_measured: demand the measured tool pose columns. With ``False`` a file without
+            any ``measured.*`` column (a pose plan) gives ``measured = None``.
+
+    Raises:
+        MeasurementFileError: malformed content (message names the file, line and column).
+    """
+    if text.startswith("\ufeff"):
+        text = text[1:]  # a UTF-8 byte-order mark, as spreadsheet programs write
+    # Split lines the way the csv module does (\n, \r\n or \r), so line numbers agree.
+    lines = io.StringIO(text, newline="").readlines()
+    comments: list[str] = []
+    h = 0
+    while h < len(lines) and (not lines[h].strip() or lines[h].lstrip().startswith("#")):
+        s = lines[h].strip()
+        if s:
+            c = s[1:]
+            comments.append(c[1:] if c.startswith(" ") else c)
+        h += 1
+    if h == len(lines):
+        raise MeasurementFileError(
+            source,
+            f"missing header row (the file has no lines besides comments); expected "
+            f"columns: {_columns_text(arm)}",
+        )
+    header_line = h + 1
+    feed = _Lines(lines[h:], header_line)
+    reader = csv.reader(feed)
+    header = [c.strip() for c in next(reader)]
+    feed.end_record()
+    ctx = RowContext(source, header_line, ())
+    layout = _parse_header(header, arm, ctx, require_measured)
+
+    ids: list[str] = []
+    row_lines: list[int] = []
+    cells: list[list[float]] = []
+    seen: dict[str, int] = {}
+    numeric = [(j, c) for j, c in enumerate(header) if c != POSE_COLUMN]
+    pose_j = header.index(POSE_COLUMN)
+    for row in reader:
+        start, raw = feed.record_start, feed.record_text
+        feed.end_record()
+        if not row or (len(row) == 1 and not row[0].strip() and len(header) > 1):
+            continue  # a blank line
+        if raw.lstrip().startswith("#"):
+            raise MeasurementFileError(
+                source,
+                "comment line after the header; '#' lines are only allowed before it",
+                line=start,
+            )
+        if len(row) != len(header):
+            raise MeasurementFileError(
+                source,
+                f"expected {len(header)} fields (one per header column), got {len(row)}",
+                line=start,
+                column=header[len(row)] if len(row) < len(header) else None,
+            )
+        pid = row[pose_j]
+        if not pid.strip():
+            raise MeasurementFileError(
+                source, "empty pose identifier", line=start, column=POSE_COLUMN
+            )
+        if pid in seen:
+            raise MeasurementFileError(
+                source,
+                f"duplicate pose identifier {pid!r} (first used on line {seen[pid]})",
+                line=start,
+                column=POSE_COLUMN,
+            )
+        seen[pid] = start
+        vals = []
+        for j, name in numeric:
+            cell = row[j]
+            try:
+                v = float(cell)
+            except ValueError:
+                what = "empty cell" if not cell.strip() else f"not a number: {cell!r}"
+                raise MeasurementFileError(source, what, line=start, column=name) from None
+            if not math.isfinite(v):
+                raise MeasurementFileError(
+                    source,
+                    f"{cell.strip()!r} is not a finite number (NaN and inf are not allowed)",
+                    line=start,
+                    column=name,
+                )
+            vals.append(v)
+        ids.append(pid)
+        row_lines.append(start)
+        cells.append(vals)
+
+    m = len(ids)
+    table = np.asarray(cells, dtype=float).reshape(m, len(numeric))
+    values = {name: table[:, k].copy() for k, (_, name) in enumerate(numeric)}
+    ctx = RowContext(source, header_line, tuple(row_lines))
+
+    q_parts = []
+    for mod, (src, suffixes) in zip(arm.modules, layout.states, strict=True):
+        cols = np.stack([values[f"{mod.name}.{s}"] for s in suffixes], axis=-1)
+        qm = np.asarray(src.to_state(mod, cols, ctx), dtype=float)
+        if qm.shape != (m, mod.dof):
+            raise ValueError(
+                f"state source {type(src).__name__} returned {qm.shape}, not {(m, mod.dof)}"
+            )
+        q_parts.append(qm)
+    q = np.concatenate(q_parts, axis=-1) if q_parts else np.zeros((m, 0))
+
+    aux = {name: values[name] for name in layout.aux}
+    for name in layout.aux:
+        if name.startswith("approach."):
+            bad = np.flatnonzero(np.abs(values[name]) != 1.0)
+            if bad.size:
+                raise ctx.error(
+                    f"approach direction must be +1 or -1, got {values[name][bad[0]]!r}",
+                    column=name,
+                    row=int(bad[0]),
+                )
+
+    measured = None
+    if layout.orientation is not None:
+        xyz = np.stack([values[c] for c in POSITION_COLUMNS], axis=-1)
+        if layout.orientation == "rotvec":
+            rv = np.stack([values[c] for c in ROTVEC_COLUMNS], axis=-1)
+            angle = np.linalg.norm(rv, axis=-1)
+            bad = np.flatnonzero(~(angle <= ROTVEC_MAX_ANGLE))
+            if bad.size:
+                k = int(bad[0])
+                j = int(np.argmax(np.abs(rv[k])))
+                raise ctx.error(
+                    f"rotation vector (measured.rx, .ry, .rz) = {tuple(rv[k].tolist())} has an "
+                    f"angle of {angle[k]:.4g} rad, above the limit {ROTVEC_MAX_ANGLE:g} rad: "
+                    "not a rotation vector in radians (a position or a value in another unit "
+                    "in this column?)",
+                    column=ROTVEC_COLUMNS[j],
+                    row=k,
+                )
+            measured = np.asarray(_poses_from_rotvec(xyz, rv), dtype=float)
+        else:
+            quat = np.stack([values[c] for c in QUATERNION_COLUMNS], axis=-1)
+            norm = np.linalg.norm(quat, axis=-1)
+            bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_TOL)
+            if bad.size:
+                k = int(bad[0])
+                raise ctx.error(
+                    f"quaternion (measured.qw, .qx, .qy, .qz) = {tuple(quat[k].tolist())} is not "
+                    f"unit: its norm {norm[k]!r} differs from 1 by {abs(norm[k] - 1.0):.3g} "
+                    f"(tolerance {QUATERNION_TOL:g})",
+                    column=QUATERNION_COLUMNS[0],
+                    row=k,
+                )
+            measured = np.asarray(_poses_from_quaternion(xyz, quat / norm[:, None]), dtype=float)
+
+    return Measurements(
+        pose_ids=tuple(ids),
+        q=q,
+        measured=measured,
+        aux=aux,
+        state_names=arm.state_names,
+        columns=tuple(header),
+        values=values,
+        comments=tuple(comments),
+        source=source,
+        lines=tuple(row_lines),
+    )
+
+
+@dataclass(frozen=True)
+class _Layout:
+    states: list[tuple[StateSource, tuple[str, ...]]]
+    aux: list[str]
+    orientation: Orientation | None
+
+
+def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured: bool) -> _Layout:
+    source = ctx.source
+
+    def err(what: str, column: str | None = None) -> MeasurementFileError:
+        return ctx.error(what, column=column)
+
+    if len(header) == 1 and ";" in header[0]:
+        raise MeasurementFileError(
+            source,
+            "columns must be separated by commas; this header row uses ';'",
+            line=ctx.header_line,
+        )
+    if POSE_COLUMN not in header:
+        looks_like_data = any(_is_number(c) for c in header)
+        if looks_like_data:
+            raise MeasurementFileError(
+                source,
+                "missing header row: the first line that is not a comment holds data; it must "
+                f"name the columns: {_columns_text(arm)}",
+                line=ctx.header_line,
+            )
+        raise err(f"missing column 'pose'; expected columns: {_columns_text(arm)}", POSE_COLUMN)
+    seen: set[str] = set()
+    for c in header:
+        if not c:
+            raise err("empty column name in the header row")
+        if c in seen:
+            raise err("column appears twice in the header row", c)
+        seen.add(c)
+
+    per_module: dict[str, list[str]] = {m: [] for m in arm.module_names}
+    aux: list[str] = []
+    measured: list[str] = []
+    known_measured = POSITION_COLUMNS + ROTVEC_COLUMNS + QUATERNION_COLUMNS
+    for c in header:
+        if c == POSE_COLUMN:
+            continue
+        if c in AUX_COLUMNS:
+            aux.append(c)
+        elif c.startswith("measured."):
+            if c not in known_measured:
+                raise err(
+                    f"unknown column; measured tool pose columns are {', '.join(known_measured)}", c
+                )
+            measured.append(c)
+        elif c.startswith("approach."):
+            target = c[len("approach.") :]
+            if target not in arm.module_names:
+                raise err(
+                    f"unknown module {target!r} in an approach column; modules of arm "
+                    f"{arm.name!r}: {', '.join(arm.module_names)}",
+                    c,
+                )
+            aux.append(c)
+        elif "." in c:
+            prefix, suffix = c.split(".", 1)
+            if prefix not in per_module:
+                raise err(
+                    f"unknown module {prefix!r} in the column prefix; modules of arm {arm.name!r}: "
+                    f"{', '.join(arm.module_names)}",
+                    c,
+                )
+            per_module[prefix].append(suffix)
+        else:
+            raise err(f"unknown column; expected columns: {_columns_text(arm)}", c)
+
+    states: list[tuple[StateSource, tuple[str, ...]]] = []
+    for mod in arm.modules:
+        suffixes = per_module[mod.name]
+        options = " or ".join(f"{s.description} {s.expected_text(mod)}" for s in STATE_SOURCES)
+        if not suffixes:
+            first = STATE_SOURCES[0].expected_text(mod).split(", ")[0]
+            raise err(
+                f"missing columns for module {mod.name!r} ({mod.kind}): give {options}", first
+            )
+        claimed: dict[int, list[str]] = {}
+        for s in suffixes:
+            owners = [i for i, src in enumerate(STATE_SOURCES) if src.claims(mod, s)]
+            if not owners:
+                raise err(
+                    f"unknown column for module {mod.name!r} ({mod.kind}); give {options}",
+                    f"{mod.name}.{s}",
+                )
+            claimed.setdefault(owners[0], []).append(s)
+        if len(claimed) > 1:
+            kinds = [STATE_SOURCES[i] for i in claimed]
+            raise err(
+                f"module {mod.name!r} has both {kinds[0].description} and {kinds[1].description} "
+                "columns; give one of them",
+                f"{mod.name}.{claimed[next(iter(claimed))][0]}",
+            )
+        src = STATE_SOURCES[next(iter(claimed))]
+        states.append((src, src.columns(mod, suffixes, ctx)))
+
+    orientation: Orientation | None = None
+    if measured or require_measured:
+        for c in POSITION_COLUMNS:
+            if c not in measured:
+                raise err(f"missing column {c} (measured tool position, mm)", c)
+        has_rv = [c for c in ROTVEC_COLUMNS if c in measured]
+        has_q = [c for c in QUATERNION_COLUMNS if c in measured]
+        if has_rv and has_q:
+            raise err(
+                "both orientation column sets are present (measured.rx/ry/rz and "
+                "measured.qw/qx/qy/qz); give exactly one",
+                has_q[0],
+            )
+        if not has_rv and not has_q:
+            raise err(
+                "missing measured orientation: give measured.rx, measured.ry, measured.rz "
+                "(rotation vector, rad) or measured.qw, measured.qx, measured.qy, measured.qz "
+                "(unit quaternion)",
+                ROTVEC_COLUMNS[0],
+            )
+        need = ROTVEC_COLUMNS if has_rv else QUATERNION_COLUMNS
+        for c in need:
+            if c not in measured:
+                raise err(f"missing column {c} (the orientation needs {', '.join(need)})", c)
+        orientation = "rotvec" if has_rv else "quaternion"
+    return _Layout(states, aux, orientation)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def load_measurements(
+    path: str | os.PathLike, arm: Arm, *, require_measured: bool = True
+) -> Measurements:
+    """Read a measurement CSV file (see :func:`loads_measurements`)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as e:
+        raise MeasurementFileError(
+            str(path), f"cannot read measurement file: {e.strerror}"
+        ) from None
+    except UnicodeDecodeError as e:
+        raise MeasurementFileError(str(path), f"not UTF-8 text: {e.reason}") from None
+    return loads_measurements(text, arm, source=str(path), require_measured=require_measured)
+
+
+def dumps_measurements(meas: Measurements) -> str:
+    """CSV text of ``meas``: comments, header, rows (floats as ``repr``; lossless)."""
+    out = io.StringIO()
+    for c in meas.comments:
+        for part in str(c).splitlines() or [""]:
+            out.write(f"# {part}\n" if part else "#\n")
+    out.write(_csv_line(meas.columns))
+    cols = [None if c == POSE_COLUMN else meas.values[c] for c in meas.columns]
+    for i, pid in enumerate(meas.pose_ids):
+        out.write(_csv_line([pid if col is None else repr(float(col[i])) for col in cols]))
+    return out.getvalue()
+
+
+def _csv_line(cells: Sequence[str]) -> str:
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(cells)
+    line = buf.getvalue()
+    if line.lstrip().startswith("#"):
+        # A pose id starting with '#' in the first column would read as a comment: quote it.
+        first = str(cells[0])
+        rest = line[len(first) :] if line.startswith(first) else line[line.index(",") :]
+        line = '"' + first.replace('"', '""') + '"' + rest
+    return line
+
+
+def save_measurements(meas: Measurements, path: str | os.PathLike, *, force: bool = False) -> Path:
+    """Write ``meas`` as a measurement CSV file atomically; never over a file unless ``force``."""
+    return write_text_atomic(path, dumps_measurements(meas), force=force)
+
+
+def check_pose_count(meas: Measurements, minimum: int = MIN_POSES) -> None:
+    """Raise :class:`MeasurementFileError` when ``meas`` has fewer than ``minimum`` poses.
+
+    The calibration needs at least 4 measured poses (Section IV, Eq. 9).
+    """
+    if meas.m < minimum:
+        raise MeasurementFileError(
+            meas.source,
+            f"{meas.m} measured pose(s); the calibration needs at least {minimum} "
+            "(Section IV, Eq. 9)",
+        )

@@ -1,0 +1,288 @@
+"""Tension closure of CDPM modules: structure matrix, exact closure test, margin, feasible sampler.
+
+Structure matrix. A cable pulling with tension ``t_i >= 0`` along ``u_i`` (from its platform
+attachment ``p_i`` towards its base attachment, see :mod:`.cables`) exerts on the platform the
+torque ``(p_i x u_i) t_i`` about the module origin. The structure matrix ``A (d, n)`` of a module
+maps tensions to the generalised force on the platform, in the module base frame:
+
+* spherical (d = 3): column ``i`` is ``p_i x u_i = (R a_i) x u_i`` (mm, i.e. N mm per N);
+* revolute (d = 1): ``axis . (p_i x u_i)``, the torque about the joint axis (mm);
+* prismatic (d = 1): ``axis . u_i``, the force along the axis (dimensionless).
+
+The joint itself carries every other force and moment component.
+
+Tension closure. A pose admits strictly positive tensions for *any* load ``w`` (``A t = w``,
+``t > 0``) iff the columns of ``A`` positively span ``R^d``: ``A`` has full row rank and no
+hyperplane through the origin has all columns on one side (no ``c != 0`` with ``c . A_i >= 0``
+for every ``i``). If the columns do not positively span, the cone ``{c : A^T c >= 0}`` is a
+pointed polyhedral cone whose extreme rays are orthogonal to ``d - 1`` linearly independent
+columns, so for d = 3 the candidate normals ``+-(A_i x A_j)`` of every pair of columns decide
+exactly; for d = 2 the perpendiculars ``+-rot90(A_i)``; for d = 1 the columns must take both
+signs. This is what :func:`tension_closure` evaluates: a fixed number of dot products, no
+iterative solver, jit- and vmap-able.
+
+Margin. :func:`hull_margin` is the signed distance from the origin to the boundary of the convex
+hull of the columns (positive inside): the largest ``r`` such that every generalised force of
+norm ``r`` is produced by tensions ``t >= 0`` summing to 1 N, i.e. the torque (N mm) available in
+the weakest direction per newton of total cable tension. It is positive exactly when the pose
+has tension closure and goes to zero at the boundary of the workspace (a cable torque vanishing
+or the columns becoming coplanar). It is computed exactly as the minimum, over a finite set of
+unit directions ``c``, of the support ``max_i c . A_i``: the facet normals of the hull (triples
+of columns for d = 3), the directions to the nearest points of its edges and vertices, and the
+normals of planes through the origin (for flat hulls). :func:`closure_margin`
+divides it by the module's largest lever arm ``max_i |a_i|`` (the most torque one newton of
+tension can give), so that a single threshold fits modules of any size:
+:data:`DEFAULT_MIN_MARGIN` = 0.05 rejects poses whose weakest direction gets less than 5 % of
+the best possible lever arm.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from ..arm import Arm, Module
+from ..simulation import sample_states
+from .cables import cable_vectors, require_cables
+
+DEFAULT_MIN_MARGIN = 0.05
+"""Default smallest :func:`closure_margin` of a pose accepted by :func:`sample_feasible_states`."""
+
+_RTOL = 1e-9
+
+
+def structure_matrix(module: Module, state: ArrayLike) -> Array:
+    """Structure matrix ``A (..., d, n)`` of ``module`` at ``state (..., dof)``, base frame.
+
+    Columns: ``(R a_i) x u_i`` (spherical, mm), ``axis . ((R a_i) x u_i)`` (revolute, mm) or
+    ``axis . u_i`` (prismatic, dimensionless); see the module docstring.
+    """
+    p, u, _ = cable_vectors(module, state)
+    axis = jnp.asarray(module.axis, p.dtype)
+    if module.kind == "spherical":
+        return jnp.swapaxes(jnp.cross(p, u), -1, -2)
+    if module.kind == "revolute":
+        return jnp.einsum("...ni,i->...n", jnp.cross(p, u), axis)[..., None, :]
+    return jnp.einsum("...ni,i->...n", u, axis)[..., None, :]
+
+
+def _check_d(A: Array) -> int:
+    d = A.shape[-2]
+    if d not in (1, 2, 3):
+        raise ValueError(f"structure matrix must have 1, 2 or 3 rows (d), got shape {A.shape}")
+    return d
+
+
+def _unit(v: Array, eps: Array) -> tuple[Array, Array]:
+    """``v / |v|`` and whether ``|v| > eps`` (invalid rows are returned as zeros)."""
+    n = jnp.linalg.norm(v, axis=-1)
+    ok = n > eps
+    return v / jnp.where(ok, n, 1.0)[..., None] * ok[..., None], ok
+
+
+def tension_closure(A: ArrayLike, rtol: float = _RTOL) -> Array:
+    """Exact test: do the columns of ``A (..., d, n)`` positively span ``R^d``? ``(...)`` bool.
+
+    True iff every generalised force is balanced by strictly positive tensions (see the module
+    docstring for the method). ``rtol`` is the relative tolerance of the rank and sign tests.
+    """
+    A = jnp.asarray(A)
+    d = _check_d(A)
+    n = A.shape[-1]
+    cols = jnp.swapaxes(A, -1, -2)  # (..., n, d)
+    norms = jnp.linalg.norm(cols, axis=-1)
+    scale = jnp.max(norms, axis=-1)
+    tol = rtol * scale
+    if d == 1:
+        x = cols[..., 0]
+        return jnp.any(x > tol[..., None], axis=-1) & jnp.any(x < -tol[..., None], axis=-1)
+    if d == 2:
+        normals = jnp.stack([-cols[..., 1], cols[..., 0]], axis=-1)  # (..., n, 2)
+        c, valid = _unit(normals, tol[..., None])
+        rank_ok = jnp.any(valid, axis=-1)  # rank 1 is caught by the separation test
+    else:
+        if n < 2:
+            return jnp.zeros(A.shape[:-2], bool)
+        i, j = np.array(list(itertools.combinations(range(n), 2))).T
+        cr = jnp.cross(cols[..., i, :], cols[..., j, :])
+        c, valid = _unit(cr, (tol * scale)[..., None])
+        # Rank 1 or less leaves no candidate normal; rank 2 puts every column on the plane
+        # normal to a candidate, which the separation test below catches.
+        rank_ok = jnp.any(valid, axis=-1)
+    c = jnp.concatenate([c, -c], axis=-2)
+    valid = jnp.concatenate([valid, valid], axis=-1)
+    dots = jnp.einsum("...ck,...nk->...cn", c, cols)  # (..., candidates, n)
+    separating = valid & jnp.all(dots >= -tol[..., None, None], axis=-1)
+    return rank_ok & ~jnp.any(separating, axis=-1)
+
+
+def hull_margin(A: ArrayLike) -> Array:
+    """Signed distance from the origin to the boundary of the hull of the columns of ``A``.
+
+    ``A (..., d, n)`` with d in {1, 2, 3}; returns ``(...)`` in the units of ``A`` (mm for the
+    torque rows of spherical and revolute modules): positive iff the pose has tension closure,
+    the generalised force available in the weakest direction per newton of total tension.
+    Negative values are minus the distance from the origin to the hull.
+    """
+    A = jnp.asarray(A)
+    d = _check_d(A)
+    n = A.shape[-1]
+    cols = jnp.swapaxes(A, -1, -2)  # (..., n, d)
+    if d == 1:
+        x = cols[..., 0]
+        return jnp.minimum(jnp.max(x, axis=-1), -jnp.min(x, axis=-1))
+    scale = jnp.max(jnp.linalg.norm(cols, axis=-1), axis=-1)
+    eps = 1e-12 * scale
+    cands, valids = [], []
+    # Vertices: the direction away from each column.
+    v, ok = _unit(-cols, eps[..., None])
+    cands.append(v)
+    valids.append(ok)
+    if n >= 2:
+        i, j = np.array(list(itertools.combinations(range(n), 2))).T
+        e = cols[..., j, :] - cols[..., i, :]
+        if d == 2:
+            # Edges are the facets: both normals.
+            nrm = jnp.stack([-e[..., 1], e[..., 0]], axis=-1)
+            c, ok = _unit(nrm, eps[..., None] * scale[..., None])
+            cands += [c, -c]
+            valids += [ok, ok]
+        else:
+            # Nearest point of each edge segment to the origin.
+            ee = jnp.sum(e * e, axis=-1)
+            t = jnp.clip(-jnp.sum(cols[..., i, :] * e, axis=-1) / jnp.where(ee > 0, ee, 1.0), 0, 1)
+            near = cols[..., i, :] + t[..., None] * e
+            c, ok = _unit(-near, eps[..., None])
+            cands.append(c)
+            valids.append(ok)
+    if d == 3:
+        # Planes through the origin: normals of column pairs, and perpendiculars of each
+        # column. They are the facets of a flat hull (columns of rank 2 or 1), whose margin is
+        # then 0 (origin inside the flat hull) or negative.
+        perp = jnp.cross(cols[..., :, None, :], jnp.eye(3, dtype=cols.dtype)).reshape(
+            cols.shape[:-2] + (3 * n, 3)
+        )
+        if n >= 2:
+            i, j = np.array(list(itertools.combinations(range(n), 2))).T
+            perp = jnp.concatenate([perp, jnp.cross(cols[..., i, :], cols[..., j, :])], axis=-2)
+        c, ok = _unit(perp, eps[..., None] * scale[..., None])
+        cands += [c, -c]
+        valids += [ok, ok]
+    if d == 3 and n >= 3:
+        i, j, k = np.array(list(itertools.combinations(range(n), 3))).T
+        nrm = jnp.cross(cols[..., j, :] - cols[..., i, :], cols[..., k, :] - cols[..., i, :])
+        c, ok = _unit(nrm, eps[..., None] * scale[..., None])
+        cands += [c, -c]
+        valids += [ok, ok]
+    c = jnp.concatenate(cands, axis=-2)
+    valid = jnp.concatenate(valids, axis=-1)
+    support = jnp.max(jnp.einsum("...ck,...nk->...cn", c, cols), axis=-1)
+    return jnp.min(jnp.where(valid, support, jnp.inf), axis=-1)
+
+
+def lever_scale(module: Module) -> float | Array:
+    """Largest generalised force per newton of tension: ``max_i |a_i|`` mm (1 for prismatic)."""
+    _, a, _ = require_cables(module)
+    if module.kind == "prismatic":
+        return 1.0
+    return jnp.max(jnp.linalg.norm(a, axis=-1))
+
+
+def closure_margin(module: Module, state: ArrayLike) -> Array:
+    """Dimensionless tension-closure margin ``hull_margin / lever_scale`` at ``state``: ``(...)``.
+
+    Positive iff the pose has tension closure; at most 1.
+    """
+    return hull_margin(structure_matrix(module, state)) / lever_scale(module)
+
+
+def has_tension_closure(module: Module, state: ArrayLike) -> Array:
+    """Exact tension-closure verdict of ``module`` at ``state (..., dof)``: ``(...)`` bool."""
+    return tension_closure(structure_matrix(module, state))
+
+
+def arm_closure_margins(arm: Arm, q: ArrayLike) -> Array:
+    """:func:`closure_margin` of every module at flat states ``q (..., dof)``: ``(..., K)``.
+
+    Modules without cables impose no tension condition and report ``+inf``.
+    """
+    q = jnp.asarray(q)
+    out = []
+    for m, qi in zip(arm.modules, arm.split_state(q), strict=True):
+        if m.n_cables:
+            out.append(closure_margin(m, qi))
+        else:
+            out.append(jnp.full(q.shape[:-1], jnp.inf, q.dtype))
+    return jnp.stack(out, axis=-1)
+
+
+def arm_tension_closure(arm: Arm, q: ArrayLike, min_margin: float | ArrayLike = 0.0) -> Array:
+    """Whether every module has tension closure (and margin above ``min_margin``): ``(...)``.
+
+    With ``min_margin = 0`` this is the exact :func:`tension_closure` verdict of every module
+    with cables; with a positive ``min_margin`` it also requires :func:`closure_margin` above it.
+    """
+    q = jnp.asarray(q)
+    ok = jnp.ones(q.shape[:-1], bool)
+    for m, qi in zip(arm.modules, arm.split_state(q), strict=True):
+        if m.n_cables:
+            A = structure_matrix(m, qi)
+            ok = ok & tension_closure(A) & (hull_margin(A) / lever_scale(m) > min_margin)
+    return ok
+
+
+def sample_feasible_states(
+    key: Array,
+    arm: Arm,
+    m: int,
+    dtype=None,
+    *,
+    min_margin: float | ArrayLike = DEFAULT_MIN_MARGIN,
+    oversample: int = 4,
+) -> Array:
+    """``m`` module states uniform within the joint limits and with tension closure: ``(m, dof)``.
+
+    Same signature as :func:`cdra_jax.simulation.sample_states` (usable as ``sampler=``): draws
+    ``oversample * m + 16`` states with it, rejects those where a module lacks tension closure or
+    has :func:`closure_margin` at or below ``min_margin``, and returns the first ``m`` accepted
+    ones in draw order (so the result is uniform over the feasible part of the joint box).
+    Jit- and vmap-able; raises at run time (``equinox`` runtime error) when fewer than ``m`` of
+    the draws are feasible: raise ``oversample`` or lower ``min_margin``.
+    """
+    if oversample < 1:
+        raise ValueError(f"oversample must be a positive integer, got {oversample}")
+    cand = sample_states(key, arm, oversample * m + 16, dtype)
+    ok = arm_tension_closure(arm, cand, min_margin)
+    order = jnp.argsort(~ok, stable=True)[:m]
+    out = cand[order]
+    return eqx.error_if(
+        out,
+        jnp.sum(ok) < m,
+        "sample_feasible_states: fewer than m of the oversample * m + 16 drawn states have tension "
+        "closure with the requested margin; raise oversample or lower min_margin",
+    )
+
+
+def feasible_fraction(key: Array, arm: Arm, n: int = 10000, min_margin: float = 0.0) -> Array:
+    """Fraction of ``n`` uniform draws in the joint box that :func:`arm_tension_closure` accepts."""
+    return jnp.mean(arm_tension_closure(arm, sample_states(key, arm, n), min_margin))
+
+
+__all__ = [
+    "DEFAULT_MIN_MARGIN",
+    "arm_closure_margins",
+    "arm_tension_closure",
+    "closure_margin",
+    "feasible_fraction",
+    "has_tension_closure",
+    "hull_margin",
+    "lever_scale",
+    "sample_feasible_states",
+    "structure_matrix",
+    "tension_closure",
+]

@@ -1,0 +1,205 @@
+"""The extended forward model shared by every candidate effect: features, parameters, candidates.
+
+Every effect of the vocabulary (:mod:`.effects`) is a small, differentiable extension of the
+geometric chain of Eq. 1 that is *linear in its physical parameters at the level of the
+corrections* (module-state offsets and small twists), while the tool pose stays the exact,
+nonlinear product of exponentials. An effect turns the data (module states, auxiliary columns,
+model masses and cables) into :class:`Features`, per pose and per parameter:
+
+* ``state (m, dof, p)``: additive offsets of the flat module state ``q`` (rad or mm);
+* ``module_twist (m, K, 6, p)``: left-multiplied twists ``(v, w)`` of each module's platform
+  pose, in the module base frame (``M_i -> exp(hat(xi_i)) M_i(q_i + dq_i)``);
+* ``frame_deflection (m, K+1, 6, p)``: end deflections ``(delta (mm), theta (rad))`` of each
+  fixed transform ``F_j = [R_j, p_j]`` in its start frame, ``F_j -> [exp(hat(theta)) R_j,
+  p_j + delta]`` (a bent link, a drifting mount).
+
+With parameters ``theta (p,)`` the corrections are ``features @ theta`` and
+:func:`corrected_tool_pose` composes them into Eq. 1. ``theta = 0`` gives the geometric model
+exactly (``exp(0) = I``, zero offsets). Features of several candidates concatenate along ``p``,
+so that one compiled program evaluates (and ``jax.jacfwd`` differentiates) all of them at once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+from .. import lie
+from ..arm import Arm, chain, module_poses
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One physical parameter of an effect.
+
+    Attributes:
+        name: short name, e.g. ``"compliance"`` or ``"half_band_rx"``.
+        unit: its unit, e.g. ``"rad/(N*mm)"``.
+        low, high: the physically plausible range (a fitted value outside it is flagged).
+        description: what it is, in words.
+    """
+
+    name: str
+    unit: str
+    low: float
+    high: float
+    description: str = ""
+
+
+class Features(eqx.Module):
+    """Per-pose, per-parameter corrections of one or more candidates (see the module docstring).
+
+    Attributes:
+        state: ``(m, dof, p)`` module-state offsets per unit parameter.
+        module_twist: ``(m, K, 6, p)`` module-platform twists ``(v, w)`` (module base frame).
+        frame_deflection: ``(m, K+1, 6, p)`` fixed-frame end deflections ``(delta, theta)``.
+    """
+
+    state: Array
+    module_twist: Array
+    frame_deflection: Array
+
+    @property
+    def n_params(self) -> int:
+        return int(self.state.shape[-1])
+
+    @staticmethod
+    def zeros(arm: Arm, m: int, p: int, dtype=None) -> Features:
+        """All-zero features for ``m`` poses and ``p`` parameters."""
+        dtype = dtype or jnp.asarray(arm.frames).dtype
+        k = len(arm.modules)
+        return Features(
+            state=jnp.zeros((m, arm.dof, p), dtype),
+            module_twist=jnp.zeros((m, k, 6, p), dtype),
+            frame_deflection=jnp.zeros((m, k + 1, 6, p), dtype),
+        )
+
+    @staticmethod
+    def concatenate(parts: Sequence[Features]) -> Features:
+        """Stack the parameters of several feature sets (same poses) along ``p``."""
+        if not parts:
+            raise ValueError("Features.concatenate needs at least one feature set")
+        return Features(
+            state=jnp.concatenate([f.state for f in parts], axis=-1),
+            module_twist=jnp.concatenate([f.module_twist for f in parts], axis=-1),
+            frame_deflection=jnp.concatenate([f.frame_deflection for f in parts], axis=-1),
+        )
+
+
+def corrected_tool_pose(arm: Arm, q: ArrayLike, features: Features, theta: ArrayLike) -> Array:
+    """Tool poses ``(m, 4, 4)`` of the geometric chain corrected by ``features @ theta``.
+
+    Args:
+        arm: the model (its fixed frames are the geometric part).
+        q: ``(m, dof)`` module states as recorded.
+        features: the candidates' :class:`Features` for these poses.
+        theta: ``(p,)`` physical parameters (units of each effect's :class:`ParameterSpec`).
+
+    Returns:
+        ``T_OF`` per pose, world frame, mm. ``theta = 0`` is Eq. 1 exactly.
+    """
+    q = jnp.asarray(q)
+    theta = jnp.asarray(theta, q.dtype)
+    if theta.shape != (features.n_params,):
+        raise ValueError(
+            f"theta must have shape ({features.n_params},) (one entry per feature column), "
+            f"got {theta.shape}"
+        )
+    dq = jnp.einsum("...dp,p->...d", features.state, theta)
+    xi = jnp.einsum("...kcp,p->...kc", features.module_twist, theta)
+    defl = jnp.einsum("...kcp,p->...kc", features.frame_deflection, theta)
+    poses = lie.se3_exp(xi) @ module_poses(arm, q + dq)
+    frames = jnp.asarray(arm.frames, q.dtype)
+    R = lie.so3_exp(defl[..., 3:]) @ frames[..., :3, :3]
+    p = frames[..., :3, 3] + defl[..., :3]
+    tool, _ = chain(lie.make_pose(R, p), poses)
+    return tool
+
+
+# Auxiliary data handed to the effects: column name -> (m,) array (``time_s``, ``payload_kg``,
+# ``approach.<module>``, ...), as in :attr:`cdra_jax.io.Measurements.aux`.
+Aux = Mapping[str, ArrayLike]
+
+
+class Effect:
+    """A candidate non-geometric effect (one row of the design's vocabulary).
+
+    Subclasses set :attr:`name`, :attr:`needs` and :attr:`summary`, and implement
+    :meth:`locations`, :meth:`parameters`, :meth:`missing` and :meth:`features`.
+    """
+
+    name: str = ""
+    needs: str = ""
+    summary: str = ""
+    variant: str = ""
+    """Which form of the effect (e.g. ``"k=2"`` for the second harmonic); the variants of one
+    effect at one location are alternatives, tried together and Bonferroni-corrected."""
+
+    def locations(self, arm: Arm) -> tuple[str, ...]:
+        """Module or frame names this effect can sit at."""
+        raise NotImplementedError
+
+    def parameters(self, arm: Arm, location: str) -> tuple[ParameterSpec, ...]:
+        """The physical parameters at ``location``."""
+        raise NotImplementedError
+
+    def missing(self, arm: Arm, location: str, aux_names: frozenset[str]) -> str | None:
+        """Why this effect cannot be evaluated at ``location`` with these data, or ``None``."""
+        return None
+
+    def features(self, arm: Arm, q: Array, aux: Aux, location: str) -> Features:
+        """Per-pose features ``(m, ..., p)`` at states ``q (m, dof)`` (see :class:`Features`)."""
+        raise NotImplementedError
+
+    def describe(self, location: str, values: Mapping[str, tuple[float, float, float]]) -> str:
+        """Plain words for a fitted effect; ``values``: name -> (value, low95, high95)."""
+        return f"{self.name} at {location}"
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One effect at one location, e.g. ``cable_elasticity`` at ``shoulder``.
+
+    Hashable (effects compare by identity), so a tuple of candidates can be a static argument
+    of a compiled function.
+    """
+
+    effect: Effect
+    location: str
+
+    @property
+    def name(self) -> str:
+        return self.effect.name
+
+    @property
+    def variant(self) -> str:
+        return self.effect.variant
+
+    @property
+    def label(self) -> str:
+        """``"<effect>@<location>"``."""
+        return f"{self.effect.name}@{self.location}"
+
+    def parameters(self, arm: Arm) -> tuple[ParameterSpec, ...]:
+        return self.effect.parameters(arm, self.location)
+
+    def missing(self, arm: Arm, aux_names: frozenset[str] | Sequence[str]) -> str | None:
+        return self.effect.missing(arm, self.location, frozenset(aux_names))
+
+    def features(self, arm: Arm, q: ArrayLike, aux: Aux) -> Features:
+        q = jnp.asarray(q)
+        f = self.effect.features(arm, q, aux, self.location)
+        p = len(self.parameters(arm))
+        if f.n_params != p:  # a bug in an effect, not a user error
+            raise AssertionError(f"{self.label}: {f.n_params} feature columns for {p} parameters")
+        return f
+
+    def tool_pose(self, arm: Arm, q: ArrayLike, aux: Aux, params: ArrayLike) -> Array:
+        """The pure extended forward model: tool poses ``(m, 4, 4)`` with this effect's
+        parameters ``params (p,)`` (zero: the geometric model exactly)."""
+        return corrected_tool_pose(arm, q, self.features(arm, q, aux), params)

@@ -1,0 +1,634 @@
+"""Batched Monte-Carlo noise-sensitivity sweeps: noise level x pose count x solver x trial.
+
+Every trial is the paper's Section V/VI procedure (:func:`cdra_jax.simulation.simulate_trial`:
+random module states, preset frame errors uniform in ``+-d_v`` mm / ``+-d_w`` rad, simulated
+measurements with isotropic Gaussian noise) followed by one calibration and its evaluation:
+
+* ``dp_fit``, ``dR_fit``: Eqs. 20-21 between the calibrated model and the measured calibration
+  poses;
+* ``dp_heldout``, ``dR_heldout``: Eqs. 20-21 between the calibrated model and the *true*
+  (noise-free) tool poses of the actual arm at ``m_verify`` fresh states: the accuracy a user
+  gets;
+* ``dp_verify``, ``dR_verify``: the paper's Step 5, against the *measured* (noisy) verification
+  poses (what one can observe on a real arm; it includes the measurement noise);
+* ``param_err``: norm of the error of the identified frames w.r.t. the true ones,
+  ``e = log(F_c F_true^-1)`` (Eqs. 15-18 at the truth), projected onto the identifiable subspace
+  (row space of the Jacobian at the truth for the calibration states; the unidentifiable
+  directions are not the solvers' fault); ``param_err_v`` (mm) and ``param_err_w`` (rad) split
+  it into translation and rotation components. The norm mixes mm and rad as the paper's step
+  norm does.
+
+Solvers: ``"paper"`` (:func:`~cdra_jax.calibration.calibrate_paper` unweighted, the paper's
+Eq. 10), ``"weighted"`` (the same with the level's :class:`~cdra_jax.calibration.NoiseModel`,
+whitened residual) and ``"lm"`` (:func:`~cdra_jax.calibration.calibrate_lm` on the whitened
+residual when the level has noise, unweighted at the noise-free level ``(0, 0)``), all with
+``throw=False``: a failed trial keeps its result code and never stops the sweep.
+
+Random numbers: trial ``t`` with ``m`` poses uses the key
+``fold_in(fold_in(PRNGKey(seed), m), t)`` (:func:`trial_key`), the same for every noise level
+and solver (common random numbers: solvers and noise levels are compared on identical poses,
+errors and standardised noise). Chunking and sharding therefore never change a result.
+
+Execution: for each (pose count, solver) one function ``vmap``-ed over trials is jitted and
+applied chunk by chunk (``chunk`` trials at a time, the last chunk padded), so memory stays
+bounded by the chunk whatever the number of trials. The trial axis of each chunk is sharded
+over ``jax.devices()`` (``NamedSharding`` on a 1-D mesh), so a multi-GPU host (or a CPU with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``) runs chunks in parallel with the same
+code. Results are a tidy table, one row per trial (:class:`SweepTable`), saved as CSV or, where
+pyarrow is installed, Parquet.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import importlib.util
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from . import lie
+from .arm import Arm, apply_frame_errors, chain, module_poses, tool_pose
+from .calibration import (
+    RESULTS,
+    NoiseModel,
+    calibrate_lm,
+    calibrate_paper,
+    calibration_jacobian,
+    deviation_metrics,
+)
+from .calibration.linear import default_rcond
+from .calibration.validation import MIN_POSES
+from .simulation import StateSampler, simulate_trial
+
+SOLVERS: tuple[str, ...] = ("paper", "weighted", "lm")
+DEFAULT_CHUNK = 4096
+_CSV_BLOCK = 8192
+COLUMNS: tuple[str, ...] = (
+    "noise_pos",
+    "noise_rot",
+    "m",
+    "solver",
+    "trial",
+    "seed",
+    "converged",
+    "result",
+    "iterations",
+    "dp_fit",
+    "dR_fit",
+    "dp_heldout",
+    "dR_heldout",
+    "dp_verify",
+    "dR_verify",
+    "param_err",
+    "param_err_v",
+    "param_err_w",
+    "rank",
+)
+_INT_COLUMNS = ("m", "trial", "seed", "iterations", "rank")
+_STR_COLUMNS = ("solver", "result")
+_BOOL_COLUMNS = ("converged",)
+_METRICS = tuple(c for c in COLUMNS[9:] if c != "rank")
+METRIC_UNITS = {
+    "dp_fit": "mm",
+    "dR_fit": "rad",
+    "dp_heldout": "mm",
+    "dR_heldout": "rad",
+    "dp_verify": "mm",
+    "dR_verify": "rad",
+    "param_err": "mm & rad",
+    "param_err_v": "mm",
+    "param_err_w": "rad",
+}
+
+
+def trial_key(seed: int, m: int, trial: int | jax.Array) -> jax.Array:
+    """PRNG key of trial ``trial`` with ``m`` calibration poses in a sweep seeded ``seed``."""
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), m), trial)
+
+
+def parse_noise_levels(
+    positions: Sequence[float], rotations: Sequence[float]
+) -> list[tuple[float, float]]:
+    """Pair position (mm) and rotation (rad) noise levels; one rotation value broadcasts.
+
+    Raises:
+        ValueError: mismatched lengths, negative values, or a level with only one of the two
+            equal to zero (``(0, 0)`` is the noise-free level).
+    """
+    positions = [float(v) for v in positions]
+    rotations = [float(v) for v in rotations]
+    if not positions:
+        raise ValueError("at least one noise level is needed")
+    if len(rotations) == 1:
+        rotations = rotations * len(positions)
+    if len(rotations) != len(positions):
+        raise ValueError(
+            f"{len(positions)} position noise levels but {len(rotations)} rotation levels: give "
+            "one rotation level for all, or one per position level"
+        )
+    levels = list(zip(positions, rotations, strict=True))
+    for sp, sr in levels:
+        if not (math.isfinite(sp) and math.isfinite(sr)) or sp < 0 or sr < 0:
+            raise ValueError(f"noise level ({sp} mm, {sr} rad) must be finite and non-negative")
+        if (sp == 0) != (sr == 0):
+            raise ValueError(
+                f"noise level ({sp} mm, {sr} rad): either both are zero (noise-free) or both "
+                "positive (the whitened residual needs both standard deviations)"
+            )
+    return levels
+
+
+@dataclass
+class SweepTable:
+    """Tidy sweep results: one row per trial; ``columns`` maps :data:`COLUMNS` to arrays.
+
+    ``meta`` holds the sweep settings (written as ``#`` comment lines in CSV and as Parquet
+    metadata).
+    """
+
+    columns: dict[str, np.ndarray]
+    meta: dict[str, str] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.columns["trial"])
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.columns[name]
+
+    def select(self, mask: np.ndarray) -> SweepTable:
+        """The rows where ``mask`` is true."""
+        return SweepTable({k: v[mask] for k, v in self.columns.items()}, dict(self.meta))
+
+    def groups(self) -> list[tuple[float, float, str]]:
+        """The distinct ``(noise_pos, noise_rot, solver)`` lines, in first-seen order."""
+        seen: dict[tuple[float, float, str], None] = {}
+        for key in zip(self["noise_pos"], self["noise_rot"], self["solver"], strict=True):
+            seen.setdefault((float(key[0]), float(key[1]), str(key[2])), None)
+        return list(seen)
+
+    def summary(
+        self,
+        metric: str = "dp_heldout",
+        quantiles: Sequence[float] = (0.1, 0.5, 0.9),
+        converged_only: bool = False,
+    ) -> list[dict]:
+        """Quantiles of ``metric`` per (noise level, solver, m), one dict per group.
+
+        Each dict has ``noise_pos``, ``noise_rot``, ``solver``, ``m``, ``n`` (trials),
+        ``converged`` (fraction), ``rms`` and ``q<percent>`` entries (``q50`` the median).
+        Non-finite values (failed trials) are left out of the quantiles.
+        """
+        if metric not in _METRICS:
+            raise ValueError(f"unknown metric {metric!r}; metrics: {_METRICS}")
+        out = []
+        for sp, sr, solver in self.groups():
+            line = (
+                (self["noise_pos"] == sp) & (self["noise_rot"] == sr) & (self["solver"] == solver)
+            )
+            for m in sorted(set(self["m"][line].tolist())):
+                rows = line & (self["m"] == m)
+                v = self[metric][rows]
+                if converged_only:
+                    v = v[self["converged"][rows]]
+                v = v[np.isfinite(v)]
+                entry = {
+                    "noise_pos": sp,
+                    "noise_rot": sr,
+                    "solver": solver,
+                    "m": int(m),
+                    "n": int(rows.sum()),
+                    "converged": float(np.mean(self["converged"][rows])),
+                    "rms": float(np.sqrt(np.mean(v * v))) if v.size else float("nan"),
+                }
+                for qq in quantiles:
+                    entry[f"q{100 * qq:g}"] = float(np.quantile(v, qq)) if v.size else float("nan")
+                out.append(entry)
+        return out
+
+    def to_csv(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write a CSV (``#`` comment lines with :attr:`meta`, then a header row)."""
+        path = Path(path)
+
+        def write(f):
+            for k, v in self.meta.items():
+                f.write(f"# {k}: {v}\n")
+            w = csv.writer(f, lineterminator="\n")
+            w.writerow(COLUMNS)
+            for start in range(0, len(self), _CSV_BLOCK):  # bounded memory for 10^6 rows
+                block = slice(start, start + _CSV_BLOCK)
+                cols = [_format_column(c, self.columns[c][block]) for c in COLUMNS]
+                w.writerows(zip(*cols, strict=True))
+
+        _atomic_write(path, write, force)
+        return path
+
+    def to_parquet(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write Parquet (needs pyarrow; :attr:`meta` goes into the schema metadata)."""
+        if importlib.util.find_spec("pyarrow") is None:
+            raise ValueError(
+                f"{path}: writing Parquet needs pyarrow, which is not installed; write a .csv "
+                "file instead (or install pyarrow)"
+            )
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = pa.table({c: self.columns[c] for c in COLUMNS})
+        table = table.replace_schema_metadata({k: str(v) for k, v in self.meta.items()})
+        path = Path(path)
+        _atomic_write(path, lambda f: pq.write_table(table, f), force, binary=True)
+        return path
+
+    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write CSV or Parquet, by the suffix of ``path`` (``.csv`` / ``.parquet``)."""
+        suffix = Path(path).suffix.lower()
+        if suffix == ".parquet":
+            return self.to_parquet(path, force=force)
+        if suffix == ".csv":
+            return self.to_csv(path, force=force)
+        raise ValueError(f"{path}: unknown table format {suffix!r}; use .csv or .parquet")
+
+
+def _format_column(name: str, values: np.ndarray) -> list[str]:
+    if name in _STR_COLUMNS:
+        return [str(v) for v in values]
+    if name in _BOOL_COLUMNS:
+        return ["true" if v else "false" for v in values]
+    if name in _INT_COLUMNS:
+        return [str(int(v)) for v in values]
+    return [repr(float(v)) for v in values]
+
+
+def _atomic_write(path: Path, write: Callable, force: bool, binary: bool = False) -> None:
+    if path.exists() and not force:
+        raise FileExistsError(f"{path}: file exists; pass force=True (CLI: --force) to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb" if binary else "w", newline=None if binary else "") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_sweep(path: str | os.PathLike) -> SweepTable:
+    """Read a table written by :meth:`SweepTable.save` (CSV, or Parquet with pyarrow).
+
+    Raises:
+        ValueError: a missing column (naming the file and the column) or a bad cell (naming the
+            line).
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".parquet":
+        import pyarrow.parquet as pq
+
+        t = pq.read_table(path)
+        pmeta = {k.decode(): v.decode() for k, v in (t.schema.metadata or {}).items()}
+        missing = [c for c in COLUMNS if c not in t.column_names]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {missing}")
+        return SweepTable({c: t.column(c).to_numpy(zero_copy_only=False) for c in COLUMNS}, pmeta)
+    meta: dict[str, str] = {}
+    with open(path, newline="") as f:
+        line_no = 0
+        pos = f.tell()
+        line = f.readline()
+        while line.startswith("#"):
+            line_no += 1
+            k, _, v = line[1:].strip().partition(":")
+            meta[k.strip()] = v.strip()
+            pos = f.tell()
+            line = f.readline()
+        f.seek(pos)
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None:
+            raise ValueError(f"{path}: no header row")
+        missing = [c for c in COLUMNS if c not in header]
+        if missing:
+            raise ValueError(f"{path}: line {line_no + 1}: missing column(s) {missing}")
+        idx = {c: header.index(c) for c in COLUMNS}
+        blocks: list[dict[str, np.ndarray]] = []
+        rows: list[list[str]] = []
+        first = line_no + 2
+        for i, row in enumerate(reader, start=first):
+            if len(row) != len(header):
+                raise ValueError(f"{path}: line {i}: {len(row)} cells, header has {len(header)}")
+            rows.append(row)
+            if len(rows) == _CSV_BLOCK:
+                blocks.append(_typed_block(path, first, rows, idx))
+                first, rows = i + 1, []
+        blocks.append(_typed_block(path, first, rows, idx))
+    cols = {c: np.concatenate([b[c] for b in blocks]) for c in COLUMNS}
+    return SweepTable(cols, meta)
+
+
+def _read_bool(v: str) -> bool:
+    if v not in ("true", "false"):
+        raise ValueError(v)
+    return v == "true"
+
+
+def _typed_block(path, first_line: int, rows: list[list[str]], idx: dict[str, int]) -> dict:
+    """Convert a block of CSV rows to typed columns; errors name the line and the column."""
+    out: dict[str, np.ndarray] = {}
+    conv: Callable[[str], object]
+    for c in COLUMNS:
+        if c in _STR_COLUMNS:
+            conv, dtype, kind = str, object, "text"
+        elif c in _BOOL_COLUMNS:
+            conv, dtype, kind = _read_bool, bool, "true/false"
+        elif c in _INT_COLUMNS:
+            conv, dtype, kind = int, np.int64, "an integer"
+        else:
+            conv, dtype, kind = float, float, "a number"
+        values = []
+        for j, r in enumerate(rows):
+            try:
+                values.append(conv(r[idx[c]]))
+            except ValueError:
+                raise ValueError(
+                    f"{path}: line {first_line + j}: column {c!r}: expected {kind}, "
+                    f"got {r[idx[c]]!r}"
+                ) from None
+        out[c] = np.asarray(values, dtype=dtype)
+    return out
+
+
+def _identifiable_error(arm_true: Arm, q: jax.Array, frames: jax.Array) -> tuple:
+    """Identified-minus-true frame errors projected on the identifiable subspace at the truth."""
+    e = lie.se3_log(frames @ lie.inverse(arm_true.frames))  # (K+1, 6)
+    _, after = chain(arm_true.frames, module_poses(arm_true, q))
+    D = calibration_jacobian(after)
+    D = D.reshape(-1, D.shape[-1])
+    _, s, Vt = jnp.linalg.svd(D, full_matrices=False)
+    keep = s > default_rcond(D.dtype) * s[0]
+    coef = jnp.where(keep, Vt @ e.reshape(-1), 0.0)
+    pe = (Vt.T @ coef).reshape(e.shape)
+    return jnp.linalg.norm(pe), jnp.linalg.norm(pe[:, :3]), jnp.linalg.norm(pe[:, 3:])
+
+
+def _trial_function(
+    m: int,
+    solver: str,
+    noisy: bool,
+    d_v: float,
+    d_w: float,
+    m_verify: int,
+    sampler: StateSampler | None,
+    max_iterations: int | None,
+) -> Callable:
+    """``f(arm, base_key, trial, noise_pos, noise_rot) -> dict`` of one trial's outputs."""
+
+    def f(arm, base, trial, sp, sr):
+        dtype = jnp.asarray(arm.frames).dtype
+        key = jax.random.fold_in(jax.random.fold_in(base, m), trial)
+        noise = NoiseModel(sp.astype(dtype), sr.astype(dtype)) if noisy else None
+        q_cal, T_cal, q_ver, T_ver, X = simulate_trial(
+            key, arm, m, d_v=d_v, d_w=d_w, noise=noise, m_verify=m_verify, sampler=sampler
+        )
+        kw = {} if max_iterations is None else {"max_iterations": max_iterations}
+        if solver == "paper":
+            sol = calibrate_paper(arm, q_cal, T_cal, None, throw=False, **kw)
+        elif solver == "weighted":
+            sol = calibrate_paper(arm, q_cal, T_cal, noise, throw=False, **kw)
+        else:
+            sol = calibrate_lm(arm, q_cal, T_cal, noise, throw=False, **kw)
+        actual = apply_frame_errors(arm, X)
+        T_model = tool_pose(arm.with_frames(sol.frames), q_ver)
+        # held-out: against the true (noise-free) poses and the measured ones, in one call
+        dp, dR = deviation_metrics(jnp.stack([tool_pose(actual, q_ver), T_ver]), T_model)
+        (dp_h, dp_v), (dR_h, dR_v) = dp, dR
+        pe, pe_v, pe_w = _identifiable_error(actual, q_cal, sol.frames)
+        return {
+            "result": sol.result._value,
+            "iterations": sol.iterations,
+            "dp_fit": sol.final_delta_p,
+            "dR_fit": sol.final_delta_R,
+            "dp_heldout": dp_h,
+            "dR_heldout": dR_h,
+            "dp_verify": dp_v,
+            "dR_verify": dR_v,
+            "param_err": pe,
+            "param_err_v": pe_v,
+            "param_err_w": pe_w,
+            "rank": sol.rank,
+        }
+
+    return f
+
+
+@functools.lru_cache(maxsize=32)
+def _batched_trials(
+    m: int,
+    solver: str,
+    noisy: bool,
+    d_v: float,
+    d_w: float,
+    m_verify: int,
+    sampler: StateSampler | None,
+    max_iterations: int | None,
+    devices: tuple[jax.Device, ...],
+) -> Callable:
+    """The jitted, vmapped and sharded trial function of one cell (cached across sweeps, so a
+    repeated sweep with the same settings and chunk size does not compile again)."""
+    mesh = Mesh(np.asarray(devices), ("trials",))
+    trials = NamedSharding(mesh, PartitionSpec("trials"))
+    replicated = NamedSharding(mesh, PartitionSpec())
+    f = _trial_function(m, solver, noisy, d_v, d_w, m_verify, sampler, max_iterations)
+    return jax.jit(
+        jax.vmap(f, in_axes=(None, None, 0, 0, 0)),
+        in_shardings=(replicated, replicated, trials, trials, trials),
+        out_shardings=trials,
+    )
+
+
+@dataclass(frozen=True)
+class _Cell:
+    m: int
+    solver: str
+    noisy: bool
+    trials: np.ndarray  # (n,) trial indices
+    levels: np.ndarray  # (n, 2) noise level per row
+
+
+def _cells(levels, pose_counts, solvers, trials) -> list[_Cell]:
+    cells = []
+    for m in pose_counts:
+        for solver in solvers:
+            for noisy in (False, True):
+                group = [lv for lv in levels if (lv[0] > 0) == noisy]
+                if not group:
+                    continue
+                if solver == "weighted" and not noisy:
+                    raise ValueError(
+                        "solver 'weighted' needs a noise model; the noise-free level (0, 0) "
+                        "can only be run with 'paper' or 'lm'"
+                    )
+                lv = np.repeat(np.asarray(group, dtype=float), trials, axis=0)
+                tr = np.tile(np.arange(trials), len(group))
+                cells.append(_Cell(int(m), solver, noisy, tr, lv))
+    return cells
+
+
+def run_sweep(
+    arm: Arm,
+    noise_levels: Iterable[tuple[float, float] | NoiseModel],
+    pose_counts: Iterable[int],
+    solvers: Iterable[str] = ("paper", "weighted", "lm"),
+    trials: int = 100,
+    *,
+    seed: int = 0,
+    chunk: int = DEFAULT_CHUNK,
+    d_v: float = 1.0,
+    d_w: float = 0.05,
+    m_verify: int = 50,
+    sampler: StateSampler | None = None,
+    max_iterations: int | None = None,
+    devices: Sequence[jax.Device] | None = None,
+    progress: bool = True,
+) -> SweepTable:
+    """Monte-Carlo sweep over noise levels x pose counts x solvers x trials.
+
+    Args:
+        arm: nominal arm.
+        noise_levels: ``(position_mm, rotation_rad)`` pairs or :class:`NoiseModel` s; ``(0, 0)``
+            is noise-free (not with ``"weighted"``).
+        pose_counts: numbers of calibration poses ``m`` (each >= 4).
+        solvers: any of ``"paper"``, ``"weighted"``, ``"lm"``.
+        trials: trials per (noise level, m, solver).
+        seed: base seed (see :func:`trial_key`).
+        chunk: trials per vmapped batch (rounded up to a multiple of the device count); memory
+            grows with it, not with ``trials``.
+        d_v, d_w: preset error ranges (Section V: 1 mm, 0.05 rad).
+        m_verify: held-out states per trial.
+        sampler: module-state sampler ``sampler(key, arm, m)`` (default uniform in the limits).
+        max_iterations: solver iteration cap (default: each solver's own).
+        devices: devices to shard the trial axis over (default ``jax.devices()``).
+        progress: show a tqdm progress bar (only when stderr is a terminal).
+
+    Returns:
+        A :class:`SweepTable` with ``len(levels) * len(pose_counts) * len(solvers) * trials``
+        rows, ordered by m, solver, noise level, trial.
+    """
+    levels = parse_noise_levels(
+        *zip(
+            *[
+                (float(lv.position_mm), float(lv.rotation_rad))
+                if isinstance(lv, NoiseModel)
+                else tuple(lv)
+                for lv in noise_levels
+            ],
+            strict=True,
+        )
+    )
+    pose_counts = [int(m) for m in pose_counts]
+    solvers = list(solvers)
+    for s in solvers:
+        if s not in SOLVERS:
+            raise ValueError(f"unknown solver {s!r}; solvers: {SOLVERS}")
+    if not pose_counts or not solvers:
+        raise ValueError("run_sweep needs at least one pose count and one solver")
+    for m in pose_counts:
+        if m < MIN_POSES:
+            raise ValueError(f"pose count {m} is below the paper's minimum of {MIN_POSES}")
+    if trials < 1 or chunk < 1 or m_verify < 1:
+        raise ValueError(f"trials ({trials}), chunk ({chunk}), m_verify ({m_verify}) must be >= 1")
+    devices = list(jax.devices() if devices is None else devices)
+    n_dev = len(devices)
+    chunk = -(-int(chunk) // n_dev) * n_dev
+    sharding = NamedSharding(Mesh(np.asarray(devices), ("trials",)), PartitionSpec("trials"))
+    dtype = jnp.asarray(arm.frames).dtype
+    base = jax.random.PRNGKey(seed)
+    cells = _cells(levels, pose_counts, solvers, int(trials))
+    total = sum(len(c.trials) for c in cells)
+    parts: list[dict[str, np.ndarray]] = []
+    t0 = time.perf_counter()
+    bar = _progress(total, progress)
+    try:
+        for cell in cells:
+            batched = _batched_trials(
+                cell.m,
+                cell.solver,
+                cell.noisy,
+                float(d_v),
+                float(d_w),
+                int(m_verify),
+                sampler,
+                max_iterations,
+                tuple(devices),
+            )
+            n = len(cell.trials)
+            for start in range(0, n, chunk):
+                stop = min(start + chunk, n)
+                pad = chunk - (stop - start)
+                tr = np.pad(cell.trials[start:stop], (0, pad), mode="edge")
+                lv = np.pad(cell.levels[start:stop], ((0, pad), (0, 0)), mode="edge")
+                args = [
+                    jax.device_put(np.asarray(a), sharding)
+                    for a in (tr.astype(np.int32), lv[:, 0].astype(dtype), lv[:, 1].astype(dtype))
+                ]
+                out = jax.device_get(batched(arm, base, *args))
+                out = {k: np.asarray(v)[: stop - start] for k, v in out.items()}
+                out["trial"] = cell.trials[start:stop]
+                out["noise_pos"] = cell.levels[start:stop, 0]
+                out["noise_rot"] = cell.levels[start:stop, 1]
+                out["m"] = np.full(stop - start, cell.m)
+                out["solver"] = np.full(stop - start, cell.solver, dtype=object)
+                parts.append(out)
+                bar.update(stop - start)
+    finally:
+        bar.close()
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    codes = cols.pop("result").astype(np.int32)
+    cols["result"] = _result_names(codes)
+    cols["converged"] = codes == 0
+    cols["seed"] = np.full(len(codes), int(seed), dtype=np.int64)
+    columns = {c: cols[c] for c in COLUMNS}
+    meta = {
+        "arm": arm.name,
+        "seed": str(seed),
+        "d_v_mm": repr(float(d_v)),
+        "d_w_rad": repr(float(d_w)),
+        "m_verify": str(m_verify),
+        "trials": str(trials),
+        "chunk": str(chunk),
+        "devices": ", ".join(str(d) for d in devices),
+        "seconds": f"{time.perf_counter() - t0:.3f}",
+        "key": "fold_in(fold_in(PRNGKey(seed), m), trial)",
+    }
+    return SweepTable(columns, meta)
+
+
+def _result_names(codes: np.ndarray) -> np.ndarray:
+    names = np.asarray(list(RESULTS._name_to_item), dtype=object)
+    return names[codes]
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, enabled: bool):
+    if not enabled or not sys.stderr.isatty():
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, unit="trial", desc="sweep", file=sys.stderr)

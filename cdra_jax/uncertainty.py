@@ -1,0 +1,472 @@
+"""How well a pose set pins the frame errors down: covariance, Cramer-Rao bound, intervals.
+
+Model. With a :class:`~cdra_jax.calibration.NoiseModel` the stacked residual is whitened
+(Eq. 9 with ``G``, see :mod:`cdra_jax.calibration.model`), ``r~ = D~ X + n`` with
+``n ~ N(0, I)`` to first order, ``D~ (6m, n)`` the whitened calibration Jacobian (Eq. 8) at the
+model and ``X`` the frame-error twists (Eq. 8, mm and rad). The Fisher information is
+``F = D~^T D~``. For the CDRA it is singular (rank 22 of 24, see :mod:`cdra_jax.identifiability`),
+so:
+
+* the covariance of the solvers' minimum-norm estimate (Eq. 10 with the rank-revealing
+  pseudo-inverse of :mod:`cdra_jax.calibration.linear`) is ``F^+ = V_r S_r^-2 V_r^T``, with the
+  same relative singular-value cut-off ``rcond`` as the solvers (``eps ** (2/3)`` by default);
+* the Cramer-Rao bound on an identifiable linear combination ``c^T X`` (``c`` in the row space of
+  ``D~``) is ``c^T F^+ c``; for any ``c`` with a component in the null space no unbiased
+  estimator exists and the bound is reported as ``inf``;
+* the tool pose predicted at a state ``q`` moves by the world-frame twist
+  ``dT = D(q) X`` (``T -> exp(hat(dT)) T``, Eqs. 5-8), so its twist covariance is
+  ``D(q) F^+ D(q)^T``; the position error is ``[I, -hat(p)] dT`` (mm) and the world-frame
+  orientation error is the rotational part ``w`` (rad).
+
+The estimate's units are mixed (mm for ``v``, rad for ``w``), as in the paper; covariances are in
+mm^2, mm rad and rad^2 accordingly. Linearise at the calibrated model (``solution.frames``) with
+the measured tool poses for whitening to describe a finished calibration, or at the nominal model
+to plan one (nothing needs to have been measured: the model's tool poses are used for whitening).
+
+Everything up to :func:`predicted_pose_covariance` is pure JAX, jitted (``equinox.filter_jit``:
+one compile per shape instead of many small eager ones) and vmap-able;
+:func:`analyze_uncertainty` and :func:`uncertainty_dict` build a JSON-ready report on the host.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from . import lie
+from .arm import Arm, chain, module_poses
+from .calibration.linear import default_rcond
+from .calibration.model import NoiseModel, calibration_jacobian, whitening
+from .identifiability import analyze as analyze_identifiability
+
+DEFAULT_CONFIDENCE = 0.95
+IDENTIFIABLE_TOL = 1e-8
+"""A direction ``c`` counts as identifiable when ``|P_null c| <= IDENTIFIABLE_TOL |c|``."""
+
+
+@eqx.filter_jit
+def whitened_jacobian(
+    arm: Arm, q: ArrayLike, noise: NoiseModel | None, measured: ArrayLike | None = None
+) -> Array:
+    """Whitened stacked Jacobian ``D~ (6m, n)`` of Eq. 9 at ``arm`` for states ``q (m, dof)``.
+
+    Whitening uses the tool positions of ``measured (m, 4, 4)`` when given (as the solvers do),
+    the model's otherwise. ``noise=None`` gives the paper's unweighted ``D``.
+    """
+    dtype = jnp.asarray(arm.frames).dtype
+    q = jnp.asarray(q, dtype)
+    tool, after = chain(arm.frames, module_poses(arm, q))
+    D = calibration_jacobian(after)
+    G = whitening(tool if measured is None else jnp.asarray(measured, dtype), noise)
+    if G is not None:
+        D = G @ D
+    return D.reshape(D.shape[:-3] + (-1, D.shape[-1]))
+
+
+class ParameterUncertainty(eqx.Module):
+    """Covariance of the minimum-norm frame-error estimate from one pose set (first order).
+
+    Attributes:
+        covariance: ``F^+ = (D~^T D~)^+`` with the solvers' rank cut-off, ``(n, n)`` (mm^2,
+            mm rad, rad^2; ordered as ``arm.param_names``).
+        singular_values: singular values of ``D~`` in decreasing order, ``(n,)`` (zero-padded).
+        basis: right singular vectors as rows, ``(n, n)``; the first ``rank`` rows span the
+            identifiable subspace (the row space of ``D~``), the rest the null space.
+        rank: numerical rank ``()``.
+    """
+
+    covariance: Array
+    singular_values: Array
+    basis: Array
+    rank: Array
+
+    @property
+    def row_space_projector(self) -> Array:
+        """Orthogonal projector onto the identifiable subspace, ``(n, n)``."""
+        n = self.basis.shape[-1]
+        keep = jnp.arange(n) < self.rank[..., None]
+        Vr = jnp.where(keep[..., :, None], self.basis, 0.0)
+        return jnp.einsum("...ki,...kj->...ij", Vr, Vr)
+
+    def null_fraction(self, directions: ArrayLike) -> Array:
+        """``|P_null c| / |c|`` for each row ``c`` of ``directions (..., k, n)``: ``(..., k)``."""
+        c = jnp.asarray(directions, self.covariance.dtype)
+        Pc = jnp.einsum("...ij,...kj->...ki", self.row_space_projector, c)
+        norm = jnp.linalg.norm(c, axis=-1)
+        return jnp.linalg.norm(c - Pc, axis=-1) / jnp.where(norm > 0, norm, 1.0)
+
+    def identifiable(self, directions: ArrayLike, tol: float = IDENTIFIABLE_TOL) -> Array:
+        """Whether each row of ``directions (..., k, n)`` lies in the identifiable subspace."""
+        return self.null_fraction(directions) <= tol
+
+    def bound(self, directions: ArrayLike, tol: float = IDENTIFIABLE_TOL) -> Array:
+        """Cramer-Rao bound ``c^T F^+ c`` on ``c^T X`` per row ``c``; ``inf`` if not identifiable.
+
+        Args:
+            directions: ``(..., k, n)`` linear combinations of the parameters.
+
+        Returns:
+            ``(..., k)`` variances (squared units of ``c^T X``).
+        """
+        c = jnp.asarray(directions, self.covariance.dtype)
+        var = jnp.einsum("...ki,...ij,...kj->...k", c, self.covariance, c)
+        return jnp.where(self.identifiable(c, tol), var, jnp.inf)
+
+
+@eqx.filter_jit
+def parameter_covariance(
+    arm: Arm,
+    q: ArrayLike,
+    noise: NoiseModel,
+    measured: ArrayLike | None = None,
+    *,
+    rcond: float | None = None,
+) -> ParameterUncertainty:
+    """Covariance of the identified frame errors for the pose set ``q (m, dof)``.
+
+    ``F^+ = (D~^T D~)^+`` (see the module docstring), with ``D~`` whitened by ``noise`` and the
+    singular values below ``rcond * s_max`` dropped, as in the solvers' Eq. 10 step.
+    jit/vmap-able (batch over ``q`` with ``vmap``).
+    """
+    if noise is None:
+        raise ValueError(
+            "parameter_covariance needs a NoiseModel (position_mm, rotation_rad): the covariance "
+            "of the estimate is in units of the measurement noise"
+        )
+    D = whitened_jacobian(arm, q, noise, measured)
+    n = D.shape[-1]
+    if D.shape[-2] < n:  # fewer rows than parameters: pad so that the SVD gives all n directions
+        D = jnp.concatenate([D, jnp.zeros(D.shape[:-2] + (n - D.shape[-2], n), D.dtype)], -2)
+    rcond = default_rcond(D.dtype) if rcond is None else rcond
+    _, s, Vt = jnp.linalg.svd(D, full_matrices=False)
+    keep = s > rcond * s[..., :1]
+    inv_s2 = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0) ** 2, 0.0)
+    cov = jnp.einsum("...ki,...k,...kj->...ij", Vt, inv_s2, Vt)
+    return ParameterUncertainty(
+        covariance=cov, singular_values=s, basis=Vt, rank=jnp.sum(keep, axis=-1)
+    )
+
+
+@eqx.filter_jit
+def cramer_rao_bound(
+    arm: Arm,
+    q: ArrayLike,
+    noise: NoiseModel,
+    directions: ArrayLike,
+    *,
+    measured: ArrayLike | None = None,
+    rcond: float | None = None,
+    tol: float = IDENTIFIABLE_TOL,
+) -> Array:
+    """Cramer-Rao bound on ``c^T X`` for each row ``c`` of ``directions (k, n)``: ``(k,)``.
+
+    For Gaussian measurement noise the whitened model is linear-Gaussian to first order and the
+    bound on an identifiable combination is ``c^T (D~^T D~)^+ c``; combinations with a
+    null-space component (relative size above ``tol``) get ``inf``.
+    """
+    return parameter_covariance(arm, q, noise, measured, rcond=rcond).bound(directions, tol)
+
+
+class PoseCovariance(eqx.Module):
+    """First-order covariance of predicted tool poses at ``k`` states.
+
+    Attributes:
+        twist: covariance of the world-frame pose-error twist ``(v, w)``, ``(k, 6, 6)``.
+        position: covariance of the tool position error, ``(k, 3, 3)`` mm^2.
+        rotation: covariance of the world-frame orientation error, ``(k, 3, 3)`` rad^2.
+    """
+
+    twist: Array
+    position: Array
+    rotation: Array
+
+    @property
+    def position_rms(self) -> Array:
+        """Expected RMS position error per pose, ``sqrt(trace)`` (mm): ``(k,)``."""
+        return jnp.sqrt(jnp.trace(self.position, axis1=-2, axis2=-1))
+
+    @property
+    def rotation_rms(self) -> Array:
+        """Expected RMS orientation error angle per pose (rad): ``(k,)``."""
+        return jnp.sqrt(jnp.trace(self.rotation, axis1=-2, axis2=-1))
+
+    @property
+    def expected_delta_p(self) -> Array:
+        """``sqrt(E[dp^2])`` of Eq. 20 over these poses, model against the true arm (mm)."""
+        return jnp.sqrt(jnp.mean(jnp.trace(self.position, axis1=-2, axis2=-1), axis=-1))
+
+    @property
+    def expected_delta_R(self) -> Array:
+        """``sqrt(E[dR^2])`` of Eq. 21 over these poses, model against the true arm (rad)."""
+        return jnp.sqrt(jnp.mean(jnp.trace(self.rotation, axis1=-2, axis2=-1), axis=-1))
+
+
+@eqx.filter_jit
+def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseCovariance:
+    """Propagate a parameter covariance ``(n, n)`` to the tool poses at ``q_eval (k, dof)``.
+
+    Uses the unwhitened Jacobian ``D(q)`` of Eq. 8 at ``arm``: twist covariance
+    ``D C D^T``; position error ``[I, -hat(p)] dT`` with ``p`` the model tool position.
+    """
+    dtype = jnp.asarray(arm.frames).dtype
+    q_eval = jnp.asarray(q_eval, dtype)
+    tool, after = chain(arm.frames, module_poses(arm, q_eval))
+    D = calibration_jacobian(after)  # (k, 6, n)
+    C = jnp.asarray(covariance, dtype)
+    twist = jnp.einsum("...ai,...ij,...bj->...ab", D, C, D)
+    p = lie.translation(tool)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), p.shape[:-1] + (3, 3))
+    H = jnp.concatenate([eye, -lie.hat3(p)], axis=-1)  # (k, 3, 6)
+    position = jnp.einsum("...ai,...ij,...bj->...ab", H, twist, H)
+    return PoseCovariance(twist=twist, position=position, rotation=twist[..., 3:, 3:])
+
+
+@eqx.filter_jit
+def predicted_pose_covariance(
+    arm: Arm,
+    q: ArrayLike,
+    noise: NoiseModel,
+    q_eval: ArrayLike | None = None,
+    measured: ArrayLike | None = None,
+    *,
+    rcond: float | None = None,
+) -> PoseCovariance:
+    """Covariance of the calibrated model's tool poses at ``q_eval`` (default: at ``q``).
+
+    ``q (m, dof)`` are the calibration states, ``noise`` the measuring device's noise. The
+    expected held-out accuracy of a calibration from ``q`` is
+    ``predicted_pose_covariance(arm, q, noise, q_heldout).expected_delta_p``.
+    """
+    unc = parameter_covariance(arm, q, noise, measured, rcond=rcond)
+    return pose_covariance(arm, q if q_eval is None else q_eval, unc.covariance)
+
+
+def normal_quantile(confidence: float) -> float:
+    """Two-sided standard-normal quantile: 1.96 for 0.95."""
+    from scipy.stats import norm
+
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence!r}")
+    return float(norm.ppf(0.5 + 0.5 * confidence))
+
+
+@dataclass(frozen=True)
+class UncertaintyReport:
+    """Host-side report of :func:`analyze_uncertainty` (numpy arrays, JSON-ready via
+    :meth:`to_dict`).
+
+    Attributes:
+        param_names: parameter names (``arm.param_names``).
+        estimate: identified errors ``(n,)`` or ``None`` when none were given.
+        std: standard deviation of each parameter's minimum-norm estimate ``(n,)``.
+        identifiable: per parameter, whether it is identifiable on its own ``(n,)``.
+        covariance: ``(n, n)`` parameter covariance ``F^+``.
+        rank, n_poses: rank of ``D~`` and the number of poses.
+        confidence, z: the interval level and its normal quantile.
+        noise: ``(position_mm, rotation_rad)``.
+        pose_position_rms, pose_rotation_rms: per evaluation pose, expected RMS errors (mm, rad).
+        expected_delta_p, expected_delta_R: ``sqrt(E[dp^2])``, ``sqrt(E[dR^2])`` over them.
+        unidentifiable: the unidentifiable directions as text (from :mod:`.identifiability`).
+        involved_in: per parameter, the unidentifiable directions it enters.
+    """
+
+    param_names: tuple[str, ...]
+    estimate: np.ndarray | None
+    std: np.ndarray
+    identifiable: np.ndarray
+    covariance: np.ndarray
+    rank: int
+    n_poses: int
+    confidence: float
+    z: float
+    noise: tuple[float, float]
+    pose_position_rms: np.ndarray
+    pose_rotation_rms: np.ndarray
+    expected_delta_p: float
+    expected_delta_R: float
+    eval_states: str
+    unidentifiable: tuple[str, ...] = field(default=())
+    involved_in: tuple[tuple[str, ...], ...] = field(default=())
+
+    def interval(self, i: int) -> tuple[float, float] | None:
+        """Confidence interval of parameter ``i`` (estimate +- z std; about 0 without an
+        estimate), or ``None`` when it is not identifiable on its own."""
+        if not self.identifiable[i]:
+            return None
+        c = 0.0 if self.estimate is None else float(self.estimate[i])
+        h = self.z * float(self.std[i])
+        return (c - h, c + h)
+
+    def to_dict(self) -> dict:
+        """JSON-ready mapping; see the README fragment for the layout."""
+        params = {}
+        for i, name in enumerate(self.param_names):
+            entry: dict = {
+                "identifiable": bool(self.identifiable[i]),
+                "estimate": None if self.estimate is None else float(self.estimate[i]),
+                "std": float(self.std[i]) if self.identifiable[i] else None,
+                "interval": None,
+            }
+            iv = self.interval(i)
+            if iv is not None:
+                entry["interval"] = [iv[0], iv[1]]
+                entry["half_width"] = self.z * float(self.std[i])
+            else:
+                entry["note"] = (
+                    "not identifiable on its own from tool poses; only combinations orthogonal "
+                    "to " + "; ".join(f"({d})" for d in self.involved_in[i]) + " are"
+                )
+            params[name] = entry
+        return {
+            "method": "first-order covariance of the minimum-norm estimate, (D~^T D~)^+ "
+            "(= Cramer-Rao bound on identifiable combinations)",
+            "units": "mm for v components, rad for w components",
+            "noise": {"position_mm": self.noise[0], "rotation_rad": self.noise[1]},
+            "confidence": self.confidence,
+            "rank": int(self.rank),
+            "n_params": len(self.param_names),
+            "n_poses": int(self.n_poses),
+            "parameters": params,
+            "unidentifiable": list(self.unidentifiable),
+            "predicted_pose": {
+                "at": self.eval_states,
+                "expected_delta_p_mm": float(self.expected_delta_p),
+                "expected_delta_R_rad": float(self.expected_delta_R),
+                "position_rms_mm": [float(v) for v in self.pose_position_rms],
+                "rotation_rms_rad": [float(v) for v in self.pose_rotation_rms],
+            },
+            "covariance": {
+                "param_names": list(self.param_names),
+                "matrix": [[float(v) for v in row] for row in self.covariance],
+            },
+        }
+
+    def summary(self) -> str:
+        """Plain-text table: one row per parameter with estimate, std and the interval."""
+        pct = f"{100 * self.confidence:g}%"
+        head = f"{'parameter':<16} {'estimate':>12} {'std':>11}  {pct} interval"
+        lines = [
+            f"uncertainty: rank {self.rank} of {len(self.param_names)} from {self.n_poses} poses, "
+            f"noise {self.noise[0]:g} mm / {self.noise[1]:g} rad",
+            head,
+            "-" * len(head) + "-" * 14,
+        ]
+        for i, name in enumerate(self.param_names):
+            est = "" if self.estimate is None else f"{self.estimate[i]:12.5g}"
+            iv = self.interval(i)
+            if iv is None:
+                lines.append(f"{name:<16} {est:>12} {'':>11}  not identifiable on its own")
+            else:
+                lines.append(
+                    f"{name:<16} {est:>12} {self.std[i]:11.3g}  [{iv[0]:.5g}, {iv[1]:.5g}]"
+                )
+        lines.append(
+            f"expected accuracy at {self.eval_states}: dp {self.expected_delta_p:.4g} mm, "
+            f"dR {self.expected_delta_R:.4g} rad (RMS, model vs true arm)"
+        )
+        return "\n".join(lines)
+
+
+def analyze_uncertainty(
+    arm: Arm,
+    q: ArrayLike,
+    noise: NoiseModel,
+    measured: ArrayLike | None = None,
+    *,
+    estimate: ArrayLike | None = None,
+    q_eval: ArrayLike | None = None,
+    confidence: float = DEFAULT_CONFIDENCE,
+    rcond: float | None = None,
+) -> UncertaintyReport:
+    """Parameter intervals and predicted-pose accuracy of a calibration from ``q (m, dof)``.
+
+    Args:
+        arm: model to linearise at (the calibrated arm for a finished calibration).
+        q: calibration states ``(m, dof)``.
+        noise: the measuring device's noise.
+        measured: measured tool poses ``(m, 4, 4)`` (whitening; model poses otherwise).
+        estimate: identified errors (``solution.errors``, ``(K+1, 6)`` or flat), centre of the
+            intervals; without it the intervals are centred on 0 (half-widths).
+        q_eval: states at which to predict the tool-pose accuracy (default: ``q``).
+        confidence: interval level (0.95: +-1.96 std).
+        rcond: singular-value cut-off (default: the solvers').
+
+    Raises:
+        ValueError: no noise model, a bad confidence, or states of the wrong shape.
+    """
+    if noise is None:
+        raise ValueError("analyze_uncertainty needs a NoiseModel (position_mm, rotation_rad)")
+    z = normal_quantile(confidence)
+    q = np.asarray(q, dtype=float)
+    if q.ndim != 2 or q.shape[1] != arm.dof:
+        raise ValueError(
+            f"module states must have shape (m, {arm.dof}) with columns {arm.state_names}, "
+            f"got {q.shape}"
+        )
+    n = arm.n_params
+    est = None
+    if estimate is not None:
+        est = np.asarray(estimate, dtype=float).reshape(-1)
+        if est.shape != (n,):
+            raise ValueError(f"estimate must hold {n} values ({arm.param_names}), got {est.size}")
+    unc = parameter_covariance(arm, q, noise, measured, rcond=rcond)
+    cov = np.asarray(unc.covariance)
+    ident = np.asarray(unc.identifiable(np.eye(n)))
+    ident_report = analyze_identifiability(
+        arm, q, measured, noise, rcond=rcond, allow_underdetermined=True
+    )
+    involved = tuple(
+        tuple(
+            text
+            for text, row in zip(ident_report.unidentifiable, ident_report.null_space, strict=True)
+            if row[i] != 0.0
+        )
+        for i in range(n)
+    )
+    pc = pose_covariance(arm, q if q_eval is None else q_eval, unc.covariance)
+    return UncertaintyReport(
+        param_names=arm.param_names,
+        estimate=est,
+        std=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
+        identifiable=ident,
+        covariance=cov,
+        rank=int(unc.rank),
+        n_poses=q.shape[0],
+        confidence=float(confidence),
+        z=z,
+        noise=(float(noise.position_mm), float(noise.rotation_rad)),
+        pose_position_rms=np.asarray(pc.position_rms),
+        pose_rotation_rms=np.asarray(pc.rotation_rms),
+        expected_delta_p=float(pc.expected_delta_p),
+        expected_delta_R=float(pc.expected_delta_R),
+        eval_states="the calibration states"
+        if q_eval is None
+        else f"{np.shape(q_eval)[0]} given states",
+        unidentifiable=ident_report.unidentifiable,
+        involved_in=involved,
+    )
+
+
+def uncertainty_dict(
+    arm: Arm,
+    q: ArrayLike,
+    noise: NoiseModel,
+    measured: ArrayLike | None = None,
+    *,
+    estimate: ArrayLike | None = None,
+    q_eval: ArrayLike | None = None,
+    confidence: float = DEFAULT_CONFIDENCE,
+) -> dict:
+    """The ``uncertainty`` entry of a result JSON (see :meth:`UncertaintyReport.to_dict`).
+
+    For a finished calibration call it with the calibrated arm, the measured states and poses,
+    the noise model used and ``estimate=solution.errors``.
+    """
+    return analyze_uncertainty(
+        arm, q, noise, measured, estimate=estimate, q_eval=q_eval, confidence=confidence
+    ).to_dict()

@@ -1,0 +1,330 @@
+"""``cdra-jax simulate`` then ``calibrate`` end to end through ``main([...])``, and its errors."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import equinox as eqx
+import numpy as np
+import pytest
+
+from cdra_jax import cli, default_arm, tool_pose
+from cdra_jax.io import dumps_model, loads_measurements
+
+COMPONENTS = ("vx", "vy", "vz", "wx", "wy", "wz")
+M = 12
+
+
+def _run(*argv: str) -> int:
+    return cli.main([str(a) for a in argv])
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """A noise-free 12-pose simulation of the default arm (no --model) with a truth file."""
+    d = tmp_path_factory.mktemp("cli")
+    rc = _run(
+        "simulate", "--poses", M, "--seed", 5, "--out", d / "poses.csv", "--truth", d / "truth.json"
+    )
+    assert rc == 0
+    return d
+
+
+def _truth(path) -> dict:
+    return json.loads(path.read_text())
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_simulate_writes_csv_with_preset_errors_in_comments(cdra, sim):
+    truth = _truth(sim / "truth.json")
+    assert truth["seed"] == 5 and truth["poses"] == M and truth["noise"] is None
+    assert truth["inputs"]["model"] == "<cdra_jax>/data/cdra.toml"  # --model omitted
+    meas = loads_measurements((sim / "poses.csv").read_text(), cdra)
+    assert meas.m == M and meas.orientation == "rotvec"
+    assert meas.pose_ids[0] == "p01"
+    for name in cdra.frame_names:
+        line = next(c for c in meas.comments if c.strip().startswith(f"{name} = ["))
+        values = [float(v) for v in line.split("[")[1].rstrip("]").split(",")]
+        assert values == [truth["frames"][name][c] for c in COMPONENTS]  # exact (repr)
+    # the 'measurements' are the tool poses of the actual frames written in the truth file
+    actual = np.stack([truth["actual_frames"][n]["matrix"] for n in cdra.frame_names])
+    T = np.asarray(eqx.filter_jit(tool_pose)(cdra.with_frames(actual), meas.q))
+    np.testing.assert_allclose(meas.measured, T, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("solver", ["paper", pytest.param("lm", marks=pytest.mark.slow)])
+def test_simulate_then_calibrate_recovers_the_preset_errors(cdra, sim, solver, capsys):
+    out = sim / f"result_{solver}.json"
+    assert _run("calibrate", "--data", sim / "poses.csv", "--out", out, "--solver", solver) == 0
+    r = json.loads(out.read_text())
+    truth = _truth(sim / "truth.json")
+    assert r["solver"] == solver and r["converged"] is True and r["noise"] is None
+    assert r["inputs"]["model"] == "<cdra_jax>/data/cdra.toml" and r["model"] == "cdra"
+    assert r["inputs"]["data"] == str(sim / "poses.csv") and len(r["inputs"]["data_sha256"]) == 64
+    assert r["final"]["delta_p_mm"] < 1e-9 and r["final"]["delta_R_rad"] < 1e-11
+    for name in ("base", "tool"):  # fully identifiable: recovered exactly (Table I)
+        got = r["frames"][name]["error_twist"]
+        for c in COMPONENTS:
+            assert abs(got[c] - truth["frames"][name][c]) < 1e-8, (name, c)
+    # upper_arm/forearm are identified up to the null space; the tool poses they predict at
+    # new states agree with the actual arm's
+    cal = np.stack([r["frames"][n]["calibrated"]["matrix"] for n in cdra.frame_names])
+    act = np.stack([truth["actual_frames"][n]["matrix"] for n in cdra.frame_names])
+    q_new = cdra.state_limits[:, 0] + np.linspace(0.1, 0.9, 7) * np.ptp(cdra.state_limits, 1)
+    fk = eqx.filter_jit(tool_pose)
+    np.testing.assert_allclose(
+        np.asarray(fk(cdra.with_frames(cal), q_new)),
+        np.asarray(fk(cdra.with_frames(act), q_new)),
+        rtol=0,
+        atol=1e-8,
+    )
+    printed = capsys.readouterr().out
+    assert "identifiability: rank 22 of 24 parameters from 12 poses" in printed
+    assert printed.count("unidentifiable: ") == 2
+    assert f"converged after {len(r['iterations'])} iteration" in printed
+    for name in cdra.frame_names:
+        assert f"\n  {name} " in printed
+    assert f"wrote {out}" in printed
+
+
+@pytest.mark.slow
+def test_noise_flags_select_the_weighted_solver(tmp_path, capsys):
+    data, truth = tmp_path / "noisy.csv", tmp_path / "truth.json"
+    noise = ("--noise-pos", "0.01", "--noise-rot", "0.0001")
+    rc = _run("simulate", "--poses", M, "--seed", 2, *noise, "--out", data, "--truth", truth)
+    assert rc == 0
+    assert _truth(truth)["noise"] == {"position_mm": 0.01, "rotation_rad": 0.0001}
+    out = tmp_path / "r.json"
+    assert _run("calibrate", "--data", data, "--out", out, *noise) == 0
+    r = json.loads(out.read_text())
+    assert r["solver"] == "weighted" and r["converged"] is True
+    assert r["noise"] == {"position_mm": 0.01, "rotation_rad": 0.0001}
+    assert "weighted by the noise model" in capsys.readouterr().out
+    # with noise the fit residual is of the noise size, and base/tool are close to the truth
+    assert 1e-3 < r["final"]["delta_p_mm"] < 0.05
+    preset = _truth(truth)["frames"]
+    for name in ("base", "tool"):
+        got = r["frames"][name]["error_twist"]
+        assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS[:3]) < 0.1
+        assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS[3:]) < 1e-3
+    # with a noise model the result carries 95 % intervals, and the base/tool ones are finite
+    # and contain the estimate; upper_arm.wy is not identifiable on its own (elbow axis)
+    unc = r["uncertainty"]
+    assert unc["rank"] == 22 and unc["n_params"] == 24
+    params = unc["parameters"]
+    low, high = params["base.vx"]["interval"]
+    assert low < r["frames"]["base"]["error_twist"]["vx"] < high
+    assert params["upper_arm.wy"]["identifiable"] is False
+    assert params["upper_arm.wy"]["interval"] is None
+
+
+def test_explicit_model_file_gives_the_same_simulation_as_the_default(sim, tmp_path):
+    model = tmp_path / "cdra_copy.toml"
+    model.write_text(dumps_model(default_arm(), exact=True))
+    out = tmp_path / "poses.csv"
+    assert _run("simulate", "--model", model, "--poses", M, "--seed", 5, "--out", out) == 0
+    arm = default_arm()
+    a = loads_measurements((sim / "poses.csv").read_text(), arm)
+    b = loads_measurements(out.read_text(), arm)
+    assert a.columns == b.columns
+    for c in a.columns[1:]:
+        np.testing.assert_array_equal(a.values[c], b.values[c])
+    assert str(model) in b.comments[0] and "<cdra_jax>/data/cdra.toml" in a.comments[0]
+
+
+def test_outputs_are_not_overwritten_without_force(sim, capsys):
+    result = sim / "existing.json"
+    result.write_text("keep")
+    rc = _run("calibrate", "--data", sim / "poses.csv", "--out", result)
+    assert rc == 1 and result.read_text() == "keep"
+    assert "existing.json: file exists" in _one_error_line(capsys)
+    csv_path = sim / "poses.csv"
+    before = csv_path.read_text()
+    rc = _run("simulate", "--poses", M, "--seed", 9, "--out", csv_path)
+    assert rc == 1 and csv_path.read_text() == before
+    assert "--force" in _one_error_line(capsys)
+    other = sim / "other.csv"
+    other.write_text("old")
+    assert _run("simulate", "--poses", M, "--seed", 9, "--out", other, "--force") == 0
+    assert other.read_text().startswith("# cdra-jax")
+
+
+def test_not_converged_exits_3_and_still_writes_the_result(sim, capsys):
+    out = sim / "short.json"
+    out.write_text("old")
+    rc = _run(
+        "calibrate", "--data", sim / "poses.csv", "--out", out, "--max-iterations", 1, "--force"
+    )
+    assert rc == cli.EXIT_NOT_CONVERGED
+    r = json.loads(out.read_text())
+    assert r["converged"] is False and r["result"] == "max_iterations_reached"
+    assert len(r["iterations"]) == 1
+    captured = capsys.readouterr()
+    assert "NOT converged (max_iterations_reached)" in captured.out
+    assert "warning: not converged" in captured.err
+
+
+def test_errors_file_sets_the_preset_errors(tmp_path):
+    errors = tmp_path / "errors.toml"
+    errors.write_text(
+        "[frames.base]\nvx = 0.5\nwz = 0.01\n\n[frames.tool]\ntwist = [1, 2, 3, 0, 0, 0.02]\n"
+    )
+    truth = tmp_path / "t.json"
+    rc = _run(
+        "simulate", "--poses", M, "--errors", errors, "--out", tmp_path / "p.csv", "--truth", truth
+    )
+    assert rc == 0
+    frames = _truth(truth)["frames"]
+    assert frames["base"] == {"vx": 0.5, "vy": 0, "vz": 0, "wx": 0, "wy": 0, "wz": 0.01}
+    assert [frames["tool"][c] for c in COMPONENTS] == [1, 2, 3, 0, 0, 0.02]
+    assert all(v == 0 for n in ("upper_arm", "forearm") for v in frames[n].values())
+    # the truth file is itself a valid --errors file
+    truth2 = tmp_path / "t2.json"
+    rc = _run(
+        "simulate", "--poses", M, "--errors", truth, "--out", tmp_path / "p2.csv", "--truth", truth2
+    )
+    assert rc == 0 and _truth(truth2)["frames"] == frames
+
+
+def _few_poses_csv(sim, tmp_path, n):
+    lines = (sim / "poses.csv").read_text().splitlines(keepends=True)
+    header = next(i for i, line in enumerate(lines) if line.startswith("pose,"))
+    path = tmp_path / "few.csv"
+    path.write_text("".join(lines[: header + 1 + n]))
+    return path, header + 1
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["calibrate", "--data", "{few}", "--out", "{tmp}/r.json"], ["few.csv", "3 measured pose"]),
+        (
+            ["calibrate", "--data", "{bad}", "--out", "{tmp}/r.json"],
+            ["bad.csv, line {line}, column 'elbow.q'", "not a number: 'x'"],
+        ),
+        (
+            [
+                "calibrate",
+                "--data",
+                "{sim}/poses.csv",
+                "--out",
+                "{tmp}/r.json",
+                "--noise-pos",
+                "0.1",
+            ],
+            ["--noise-pos and --noise-rot go together"],
+        ),
+        (
+            ["calibrate", "--data", "{tmp}/missing.csv", "--out", "{tmp}/r.json"],
+            ["missing.csv: cannot read measurement file"],
+        ),
+        (
+            ["calibrate", "--model", "{tmp}/none.toml", "--data", "{few}", "--out", "{tmp}/r.json"],
+            ["none.toml: cannot read model file"],
+        ),
+        (
+            ["calibrate", "--data", "{few}", "--out", "{tmp}/nofolder/r.json"],
+            ["nofolder", "does not exist"],
+        ),
+        (
+            ["simulate", "--poses", "5", "--errors", "zero", "--d-v", "2", "--out", "{tmp}/s.csv"],
+            ["--d-v/--d-w", "--errors random"],
+        ),
+        (
+            ["simulate", "--poses", "5", "--errors", "{tmp}/e.json", "--out", "{tmp}/s.csv"],
+            ["e.json: frames.elbow: unknown frame 'elbow'", "base, upper_arm, forearm, tool"],
+        ),
+        (
+            ["simulate", "--poses", "0", "--out", "{tmp}/s.csv"],
+            ["--poses must be at least 1"],
+        ),
+        (
+            ["simulate", "--poses", "5", "--noise-pos", "0.1", "--noise-rot", "-1", "--out", "x"],
+            ["--noise-rot must be a positive number"],
+        ),
+    ],
+    ids=[
+        "fewer than 4 poses",
+        "bad cell",
+        "noise flags alone",
+        "missing data",
+        "missing model",
+        "missing output folder",
+        "d-v without random",
+        "unknown frame in errors file",
+        "zero poses",
+        "negative noise",
+    ],
+)
+def test_bad_input_gives_one_error_line(sim, tmp_path, capsys, argv, expected):
+    few, _ = _few_poses_csv(sim, tmp_path, 3)
+    lines = (sim / "poses.csv").read_text().splitlines(keepends=True)
+    header = next(i for i, line in enumerate(lines) if line.startswith("pose,"))
+    cells = lines[header + 2].split(",")
+    cells[4] = "x"  # elbow.q of the second pose
+    lines[header + 2] = ",".join(cells)
+    (tmp_path / "bad.csv").write_text("".join(lines))
+    (tmp_path / "e.json").write_text('{"frames": {"elbow": [0, 0, 0, 0, 0, 0]}}')
+    subs = {
+        "few": few,
+        "bad": tmp_path / "bad.csv",
+        "tmp": tmp_path,
+        "sim": sim,
+        "line": header + 3,
+    }
+    assert _run(*(a.format(**subs) for a in argv)) == cli.EXIT_ERROR
+    line = _one_error_line(capsys)
+    for part in expected:
+        assert part.format(**subs) in line, line
+
+
+def test_help_and_usage_errors(capsys):
+    assert cli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "calibrate" in out and "simulate" in out
+    assert cli.main(["calibrate", "--data", "x.csv"]) == cli.EXIT_USAGE  # --out missing
+    assert "--out" in capsys.readouterr().err
+    assert cli.main(["calibrate", "--solver", "gn", "--data", "x", "--out", "y"]) == 2
+
+
+def test_external_subcommand_module_plugs_in(monkeypatch, capsys):
+    fake = types.ModuleType("cdra_jax._fake_cmd")
+
+    def register(subparsers):
+        p = subparsers.add_parser("fake", help="a plugged-in subcommand")
+        p.add_argument("--n", type=int, default=1)
+
+    def run(args):
+        print(f"fake ran with n={args.n}")
+        return 7
+
+    fake.register, fake.run = register, run
+    monkeypatch.setitem(sys.modules, "cdra_jax._fake_cmd", fake)
+    monkeypatch.setattr(cli, "SUBCOMMANDS", [*cli.SUBCOMMANDS, cli._external("_fake_cmd")])
+    assert cli.main(["fake", "--n", "3"]) == 7
+    assert "fake ran with n=3" in capsys.readouterr().out
+
+
+def test_simulate_cables_then_calibrate(tmp_path, capsys):
+    data, truth, out = tmp_path / "cables.csv", tmp_path / "truth.json", tmp_path / "r.json"
+    assert (
+        _run("simulate", "--poses", M, "--seed", 4, "--cables", "--out", data, "--truth", truth)
+        == 0
+    )
+    header = [ln for ln in data.read_text().splitlines() if not ln.startswith("#")][0]
+    assert "shoulder.l6" in header and "wrist.l4" in header and "elbow.l2" in header
+    assert "shoulder.rx" not in header
+    assert _run("calibrate", "--data", data, "--out", out) == 0
+    r = json.loads(out.read_text())
+    preset = _truth(truth)["frames"]
+    for name in ("base", "tool"):
+        got = r["frames"][name]["error_twist"]
+        assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS) < 1e-8

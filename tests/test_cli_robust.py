@@ -1,0 +1,310 @@
+"""``cdra-jax calibrate`` under bad data: the failure-mode table (one error line, exit 1), robust
+losses with per-pose outlier flags, warnings for degenerate pose sets (exit 0)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import tomli_w
+from _robust_data import M, problem
+
+from cdra_jax import cli
+from cdra_jax.io import Measurements, arm_to_dict, dumps_measurements, save_measurements
+
+
+def _run(*argv) -> int:
+    return cli.main([str(a) for a in argv])
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """Clean and contaminated 12-pose measurement files of ``problem(0)``."""
+    d = tmp_path_factory.mktemp("robust_cli")
+    p = problem(0)
+    save_measurements(Measurements.from_arrays(p.arm, p.q, p.T), d / "clean.csv")
+    save_measurements(Measurements.from_arrays(p.arm, p.q, p.T_bad), d / "bad.csv")
+    return d, p
+
+
+def _errors(capsys) -> tuple[list[str], str]:
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    return [line for line in cap.err.splitlines() if line], cap.out
+
+
+# --------------------------------------------------------------------------- robust losses
+
+
+def test_cauchy_flags_the_corrupted_poses_in_summary_and_json(files, capsys):
+    d, p = files
+    out = d / "cauchy.json"
+    assert _run("calibrate", "--data", d / "bad.csv", "--out", out, "--loss", "cauchy") == 0
+    r = json.loads(out.read_text())
+    assert r["converged"] and r["solver"] == "weighted+cauchy"
+    assert r["robust"]["loss"] == "cauchy" and r["robust"]["tuning_constant"] == 2.385
+    assert r["robust"]["inner_solver"] == "paper" and r["robust"]["rounds"] >= 1
+    bad_ids = [f"p{i + 1:02d}" for i in np.flatnonzero(p.mask)]
+    assert r["outliers"]["poses"] == bad_ids and r["outliers"]["scale"]["source"] == "MAD"
+    for x in r["residuals"]:
+        assert x["outlier"] is (x["pose"] in bad_ids)
+        assert (x["weight"] < 0.01) if x["outlier"] else (x["weight"] > 0.5)
+    assert len(r["iterations"]) == r["robust"]["rounds"] + 1
+    err, printed = _errors(capsys)
+    assert "solver: cauchy (robust, c = 2.385)" in printed
+    assert f"from the MAD): {len(bad_ids)}\n  {bad_ids[0]}: z = " in printed or (
+        f"from the MAD): {len(bad_ids)}\n  {bad_ids[1]}: z = " in printed
+    )
+    assert err == [
+        next(w for w in r["warnings"] if "look like outliers" in w).join(("warning: ", ""))
+    ]
+    assert "the robust fit down-weighted them" in err[0]
+
+
+def test_least_squares_result_has_unit_weights_and_flags(files, capsys):
+    d, _ = files
+    out = d / "ls.json"
+    assert _run("calibrate", "--data", d / "clean.csv", "--out", out) == 0
+    r = json.loads(out.read_text())
+    assert r["robust"] is None and r["solver"] == "paper"
+    assert all(x["weight"] == 1.0 and x["outlier"] is False for x in r["residuals"])
+    assert r["outliers"]["poses"] == [] and r["conditioning"]["ill_conditioned"] is False
+    # the identifiability warning is in the JSON (and the printed summary), not on stderr
+    assert any("cannot be identified" in w for w in r["warnings"])
+    err, printed = _errors(capsys)
+    assert err == [] and "from the MAD): none" in printed
+
+
+# --------------------------------------------------------------------------- degenerate sets
+
+
+def _write(d, name, p, q, T):
+    path = d / name
+    save_measurements(Measurements.from_arrays(p.arm, q, T), path, force=True)
+    return path
+
+
+def test_degenerate_pose_sets_warn_and_give_the_min_norm_answer(files, capsys):
+    d, p = files
+    from cdra_jax import tool_pose
+
+    actual = p.arm.with_frames(p.actual_frames)
+    same = np.repeat(p.q[:1], M, axis=0)
+    data = _write(d, "same.csv", p, same, np.asarray(tool_pose(actual, same)))
+    assert _run("calibrate", "--data", data, "--out", d / "same.json") == 0
+    r = json.loads((d / "same.json").read_text())
+    assert r["identifiability"]["rank"] == 6 and len(r["identifiability"]["unidentifiable"]) == 18
+    assert r["final"]["rank"] == 6 and r["final"]["delta_p_mm"] < 1e-8
+    err, printed = _errors(capsys)
+    assert "rank 6 of 24 parameters" in printed and printed.count("  unidentifiable: ") == 18
+    assert any("11 pose(s) repeat the module state" in e for e in err)
+
+    elbow = p.q.copy()
+    elbow[:, 3] = 1.1
+    data = _write(d, "elbow.csv", p, elbow, np.asarray(tool_pose(actual, elbow)))
+    assert _run("calibrate", "--data", data, "--out", d / "elbow.json") == 0
+    r = json.loads((d / "elbow.json").read_text())
+    assert r["identifiability"]["rank"] == 18 and r["final"]["delta_p_mm"] < 1e-8
+    assert all(np.isfinite(v) for f in r["frames"].values() for v in f["error_twist"].values())
+    assert "rank 18 of 24" in _errors(capsys)[1]
+
+    near = p.q[:1] + 0.003 * np.random.default_rng(1).standard_normal((M, 7))
+    data = _write(d, "near.csv", p, near, np.asarray(tool_pose(actual, near)))
+    assert _run("calibrate", "--data", data, "--out", d / "near.json") == 0
+    r = json.loads((d / "near.json").read_text())
+    assert r["conditioning"]["ill_conditioned"] is True and r["conditioning"]["weak_directions"]
+    err, _ = _errors(capsys)
+    assert any(e.startswith("warning: poorly conditioned pose set") for e in err)
+    assert any(w.startswith("poorly conditioned pose set") for w in r["warnings"])
+
+
+# --------------------------------------------------------------------------- failure modes
+
+
+def _csv_edit(text: str, row: int, column: str, value: str) -> str:
+    lines = text.splitlines(keepends=True)
+    header = lines[0].rstrip("\n").split(",")
+    cells = lines[row].rstrip("\n").split(",")
+    cells[header.index(column)] = value
+    lines[row] = ",".join(cells) + "\n"
+    return "".join(lines)
+
+
+def _add_column(text: str, name: str, value: str) -> str:
+    lines = text.splitlines()
+    return "\n".join([lines[0] + f",{name}"] + [line + f",{value}" for line in lines[1:]]) + "\n"
+
+
+def _drop_column(text: str, name: str) -> str:
+    rows = [line.split(",") for line in text.splitlines()]
+    j = rows[0].index(name)
+    return "".join(",".join(r[:j] + r[j + 1 :]) + "\n" for r in rows)
+
+
+def _scaled(text: str, columns, factor) -> str:
+    lines = text.splitlines(keepends=True)
+    header = lines[0].rstrip("\n").split(",")
+    idx = [header.index(c) for c in columns]
+    for k in range(1, len(lines)):
+        cells = lines[k].rstrip("\n").split(",")
+        for j in idx:
+            cells[j] = repr(float(cells[j]) * factor)
+        lines[k] = ",".join(cells) + "\n"
+    return "".join(lines)
+
+
+def _model(p, edit) -> str:
+    spec = arm_to_dict(p.arm, exact=True)
+    edit(spec)
+    return tomli_w.dumps(spec)
+
+
+def _cables(spec):
+    spec["modules"][0]["cables"] = [
+        {"base": [60.0 * np.cos(a), 60.0 * np.sin(a), 0.0], "platform": [20.0, 0.0, 30.0]}
+        for a in (0.0, 2.1, 4.2)
+    ]
+
+
+def _left_handed(spec):
+    spec["frames"][3]["matrix"][2][2] = -1.0
+
+
+def _skewed(spec):
+    spec["frames"][1]["matrix"][0][1] = 0.02
+
+
+XYZ = ("measured.x", "measured.y", "measured.z")
+RV = ("measured.rx", "measured.ry", "measured.rz")
+
+# name -> (csv edit | None, model edit | None, extra argv, expected parts of the error line)
+FAILURES = {
+    "missing header row": (
+        lambda t: "".join(t.splitlines(keepends=True)[1:]),
+        None,
+        [],
+        ["data.csv, line 1", "missing header row"],
+    ),
+    "unknown column": (
+        lambda t: _add_column(t, "humidity", "0.4"),
+        None,
+        [],
+        ["data.csv, line 1 (header row), column 'humidity'", "unknown column", "expected"],
+    ),
+    "missing column": (
+        lambda t: _drop_column(t, "measured.z"),
+        None,
+        [],
+        ["data.csv, line 1 (header row), column 'measured.z'", "missing column measured.z"],
+    ),
+    "extra field (unquoted comma)": (
+        lambda t: _csv_edit(t, 3, "elbow.q", "1,2"),
+        None,
+        [],
+        ["data.csv, line 4", "expected 14 fields"],
+    ),
+    "text in a number cell": (
+        lambda t: _csv_edit(t, 3, "elbow.q", "abc"),
+        None,
+        [],
+        ["data.csv, line 4, column 'elbow.q'", "not a number: 'abc'"],
+    ),
+    "duplicated pose id": (
+        lambda t: _csv_edit(t, 5, "pose", "p02"),
+        None,
+        [],
+        ["data.csv, line 6, column 'pose'", "duplicate pose identifier 'p02'", "line 3"],
+    ),
+    "NaN": (
+        lambda t: _csv_edit(t, 2, "wrist.ry", "NaN"),
+        None,
+        [],
+        ["data.csv, line 3, column 'wrist.ry'", "NaN and inf are not allowed"],
+    ),
+    "inf": (
+        lambda t: _csv_edit(t, 7, "measured.y", "inf"),
+        None,
+        [],
+        ["data.csv, line 8, column 'measured.y'", "not a finite number"],
+    ),
+    "unknown module": (
+        lambda t: t.replace("elbow.q", "knee.q", 1),
+        None,
+        [],
+        ["column 'knee.q'", "unknown module 'knee'", "shoulder, elbow, wrist"],
+    ),
+    "wrong cable count": (
+        lambda t: t.replace(
+            "shoulder.rx,shoulder.ry,shoulder.rz", "shoulder.l1,shoulder.l2,shoulder.l4", 1
+        ),
+        _cables,
+        [],
+        ["column 'shoulder.l4'", "has 3 cables in the model, so shoulder.l4 does not exist"],
+    ),
+    "model missing a frame": (
+        None,
+        lambda s: s["frames"].pop(2),
+        [],
+        ["arm.toml: top level", "3 modules need 4 [[frames]]", "got 3"],
+    ),
+    "left-handed model frame": (
+        None,
+        _left_handed,
+        [],
+        ["arm.toml: frames[3] (tool)", "reflection", "left-handed"],
+    ),
+    "non-orthonormal model frame": (
+        None,
+        _skewed,
+        [],
+        ["arm.toml: frames[1] (upper_arm)", "not orthonormal"],
+    ),
+    "positions in metres": (
+        lambda t: _scaled(t, XYZ, 1e-3),
+        None,
+        [],
+        ["data.csv, column 'measured.x'", "look like metres", "multiply by 1000?"],
+    ),
+    "rotation vectors in degrees": (
+        lambda t: _scaled(t, RV, 180 / np.pi),
+        None,
+        [],
+        ["data.csv, column 'measured.rx'", "look like degrees", "multiply by pi/180?"],
+    ),
+    "joint angles in degrees": (
+        lambda t: _scaled(t, ["elbow.q"], 180 / np.pi),
+        None,
+        [],
+        ["column 'elbow.q'", "looks like degrees", "multiply by pi/180?"],
+    ),
+    "fewer than 4 poses": (
+        lambda t: "".join(t.splitlines(keepends=True)[:4]),
+        None,
+        [],
+        ["data.csv: 3 measured pose(s); the calibration needs at least 4"],
+    ),
+    "output exists": (None, None, ["--out", "{exists}"], ["file exists", "--force"]),
+}
+
+
+@pytest.mark.parametrize("case", list(FAILURES))
+def test_failure_modes_give_one_error_line_and_exit_1(files, tmp_path, capsys, case):
+    d, p = files
+    csv_edit, model_edit, extra, expected = FAILURES[case]
+    text = dumps_measurements(Measurements.from_arrays(p.arm, p.q, p.T))
+    data = tmp_path / "data.csv"
+    data.write_text(csv_edit(text) if csv_edit else text)
+    argv = ["calibrate", "--data", data, "--out", tmp_path / "r.json"]
+    if model_edit:
+        (tmp_path / "arm.toml").write_text(_model(p, model_edit))
+        argv += ["--model", tmp_path / "arm.toml"]
+    exists = tmp_path / "exists.json"
+    exists.write_text("{}")
+    argv += [a.format(exists=exists) if isinstance(a, str) else a for a in extra]
+    assert _run(*argv) == cli.EXIT_ERROR
+    err, _ = _errors(capsys)
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    for part in expected:
+        assert part in err[0], (case, err[0])
+    assert exists.read_text() == "{}" and not (tmp_path / "r.json").exists()

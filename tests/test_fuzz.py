@@ -1,0 +1,493 @@
+"""Property tests (hypothesis): every public entry point returns finite output or raises its
+documented error (a ``ValueError`` subclass naming the place) -- never NaN silently, never an
+unexpected exception type.
+
+Strategies: SE(3) elements (near the identity, generic, near and beyond pi), arms (random K,
+module kinds, frames, axes, limits), measurement CSV text (random column subsets and orders,
+random cells, junk lines), mutated model TOML, frame-error and result mappings, and random
+measured poses fed to the compiled solvers. Set ``CDRA_FUZZ_EXAMPLES`` to run more examples.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import io
+import json
+import math
+import os
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import tomli_w
+from _robust_data import M, problem
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from cdra_jax import lie
+from cdra_jax.arm import Arm, forward_kinematics, prismatic, revolute, spherical
+from cdra_jax.calibration import RESULTS, Cauchy, Huber, calibrate_paper, calibrate_robust
+from cdra_jax.conditioning import conditioning
+from cdra_jax.identifiability import analyze
+from cdra_jax.io import (
+    FrameErrorFileError,
+    MeasurementFileError,
+    ModelFileError,
+    ResultFileError,
+    arm_to_dict,
+    check_plausibility,
+    default_arm,
+    dumps_model,
+    frame_errors_from_mapping,
+    loads_measurements,
+    loads_model,
+    loads_result,
+    rigid_transform_problem,
+)
+
+N = int(os.environ.get("CDRA_FUZZ_EXAMPLES", "0"))
+
+
+def fuzz(n: int):
+    """Modest example counts (scaled up by ``CDRA_FUZZ_EXAMPLES``), no deadline."""
+    return settings(
+        max_examples=max(n, N),
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+    )
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+
+# --------------------------------------------------------------------------- SE(3)
+
+
+@st.composite
+def rotvecs(draw):
+    v = np.array(draw(st.tuples(*[st.floats(-1.0, 1.0)] * 3)))
+    assume(np.linalg.norm(v) > 1e-3)
+    angle = draw(
+        st.one_of(
+            st.floats(0.0, 1e-7),  # near the identity
+            st.floats(0.0, math.pi),
+            st.floats(math.pi - 1e-6, math.pi),  # near pi
+            st.just(math.pi),
+            st.floats(math.pi, 3 * math.pi),  # beyond pi: another vector of the same rotation
+        )
+    )
+    return v / np.linalg.norm(v) * angle
+
+
+twists = st.builds(
+    lambda w, v: np.concatenate([v, w]),
+    rotvecs(),
+    st.tuples(*[st.floats(-1e3, 1e3)] * 3).map(np.array),
+)
+BATCH = 8  # one shape: the compiled maps are reused across examples
+
+
+@jax.jit
+def _se3_round_trip(xi):
+    T = lie.se3_exp(xi)
+    log = lie.se3_log(T)
+    q = lie.rotation_to_quaternion(lie.rotation(T))
+    return T, log, lie.se3_exp(log), q, lie.quaternion_to_rotation(q), T @ lie.inverse(T)
+
+
+@fuzz(40)
+@given(st.lists(twists, min_size=BATCH, max_size=BATCH))
+def test_se3_maps_are_finite_rigid_and_round_trip(xis):
+    xi = np.stack(xis)
+    T, log, T2, q, R2, eye = (np.asarray(a) for a in _se3_round_trip(jnp.asarray(xi)))
+    for a in (T, log, T2, q, R2, eye):
+        assert np.all(np.isfinite(a))
+    for i in range(BATCH):
+        assert rigid_transform_problem(T[i], tol=1e-12) is None
+    assert np.all(np.linalg.norm(log[:, 3:], axis=-1) <= math.pi + 1e-12)
+    scale = 1.0 + np.abs(xi[:, :3]).max()
+    np.testing.assert_allclose(T2, T, atol=1e-9 * scale)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(R2, T[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(eye, np.broadcast_to(np.eye(4), eye.shape), atol=1e-9 * scale)
+
+
+@jax.jit
+def _losses(z):
+    return [(f.rho(z), f.influence(z), f.weight(z)) for f in (Huber(), Cauchy())]
+
+
+@fuzz(25)
+@given(st.lists(st.floats(-1e300, 1e300), min_size=16, max_size=16))
+def test_robust_losses_are_finite_with_weights_in_0_1(zs):
+    for rho, psi, w in _losses(jnp.asarray(zs)):
+        rho, psi, w = np.asarray(rho), np.asarray(psi), np.asarray(w)
+        assert np.all(np.isfinite(rho)) and np.all(np.isfinite(psi)) and np.all(rho >= 0)
+        assert np.all((w >= 0) & (w <= 1)) and np.all(w[np.abs(np.asarray(zs)) < 1e100] > 0)
+
+
+# --------------------------------------------------------------------------- arms
+
+
+@st.composite
+def arms(draw):
+    k = draw(st.integers(1, 3))
+    modules = []
+    for i in range(k):
+        kind = draw(st.sampled_from(["spherical", "revolute", "prismatic"]))
+        lo = draw(st.floats(-2.0, 1.0))
+        hi = lo + draw(st.floats(0.1, 2.0))
+        axis = draw(st.tuples(*[st.floats(-1.0, 1.0)] * 3))
+        assume(np.linalg.norm(axis) > 1e-2)
+        if kind == "spherical":
+            modules.append(spherical(f"m{i}", [(lo, hi)] * 3))
+        elif kind == "revolute":
+            modules.append(revolute(f"m{i}", axis, (lo, hi)))
+        else:
+            modules.append(prismatic(f"m{i}", axis, (100 * lo, 100 * hi)))
+    xis = draw(st.lists(twists, min_size=k + 1, max_size=k + 1))
+    frames = np.asarray(lie.se3_exp(jnp.asarray(np.stack(xis))))
+    return Arm(
+        frames=jnp.asarray(frames),
+        modules=tuple(modules),
+        frame_names=tuple(f"f{j}" for j in range(k + 1)),
+    )
+
+
+@fuzz(6)
+@given(arms(), st.integers(0, 2**31 - 1))
+def test_random_arms_have_finite_kinematics_identifiability_and_round_trip(arm, seed):
+    rng = np.random.default_rng(seed)
+    lim = arm.state_limits
+    q = lim[:, 0] + rng.uniform(size=(5, arm.dof)) * (lim[:, 1] - lim[:, 0])
+    tool, after = (np.asarray(a) for a in forward_kinematics(arm, jnp.asarray(q)))
+    assert np.all(np.isfinite(tool)) and np.all(np.isfinite(after))
+    for T in tool:
+        assert rigid_transform_problem(T, tol=1e-9) is None
+    rep = analyze(arm, q)
+    assert 0 < rep.rank <= rep.n_params and np.all(np.isfinite(rep.singular_values))
+    k = rep.n_params - rep.rank
+    np.testing.assert_allclose(rep.null_space @ rep.null_space.T, np.eye(k), atol=1e-8)
+    cond = conditioning(arm, q)
+    assert cond.rank == rep.rank or abs(cond.rank - rep.rank) <= 1  # scaled vs raw cut-off
+    assert np.isfinite(cond.condition_number) and all(cond.weak_directions)
+    back = loads_model(dumps_model(arm, exact=True))
+    np.testing.assert_array_equal(np.asarray(back.frames), np.asarray(arm.frames))
+    assert back.state_names == arm.state_names and back.state_limits.tolist() == lim.tolist()
+
+
+# --------------------------------------------------------------------------- model files
+
+
+def _junk():
+    return st.one_of(
+        st.none(),
+        st.booleans(),
+        st.integers(-(10**6), 10**6),
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.text(max_size=8),
+        st.lists(st.floats(-1e3, 1e3), max_size=5),
+        st.lists(st.lists(st.floats(-2.0, 2.0), min_size=4, max_size=4), min_size=3, max_size=5),
+        st.dictionaries(st.text(max_size=5), st.integers(), max_size=2),
+    )
+
+
+def _paths(obj, prefix=()):
+    yield prefix
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _paths(v, (*prefix, k))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _paths(v, (*prefix, i))
+
+
+@st.composite
+def mutated(draw, base):
+    spec = copy.deepcopy(base)
+    for _ in range(draw(st.integers(1, 3))):
+        paths = [p for p in _paths(spec) if p]
+        path = draw(st.sampled_from(paths))
+        parent = spec
+        for key in path[:-1]:
+            parent = parent[key]
+        action = draw(st.sampled_from(["delete", "replace", "add"]))
+        if action == "delete":
+            del parent[path[-1]]
+        elif action == "replace":
+            parent[path[-1]] = draw(_junk())
+        elif isinstance(parent, dict):
+            parent[draw(st.sampled_from(["extra", "name", "kind", "matrix", "xyz"]))] = draw(
+                _junk()
+            )
+        else:
+            parent.append(draw(_junk()))
+    return spec
+
+
+MODEL = arm_to_dict(default_arm())
+MODEL_EXACT = arm_to_dict(default_arm(), exact=True)
+
+
+def _toml(spec) -> str:
+    def clean(o):  # TOML has no null: drop None entries (the mutation still counts)
+        if isinstance(o, dict):
+            return {str(k): clean(v) for k, v in o.items() if v is not None}
+        if isinstance(o, list):
+            return [clean(v) for v in o if v is not None]
+        return o
+
+    try:
+        return tomli_w.dumps(clean(spec))
+    except (TypeError, ValueError):
+        assume(False)
+        raise
+
+
+@fuzz(60)
+@given(st.one_of(mutated(MODEL), mutated(MODEL_EXACT)))
+def test_mutated_model_files_load_or_raise_model_file_error(spec):
+    text = _toml(spec)
+    try:
+        arm = loads_model(text, source="m.toml")
+    except ModelFileError as e:
+        assert str(e).startswith("m.toml: ")
+        return
+    frames = np.asarray(arm.frames)
+    assert np.all(np.isfinite(frames)) and np.all(np.isfinite(np.asarray(arm.gravity)))
+    for T in frames:
+        assert rigid_transform_problem(T) is None
+
+
+@fuzz(20)
+@given(st.text(max_size=200))
+def test_random_text_as_model_file(text):
+    try:
+        loads_model(text, source="m.toml")
+    except ModelFileError:
+        pass
+
+
+# --------------------------------------------------------------------------- measurement CSV
+
+ARM = default_arm()
+COLUMNS = [
+    "pose",
+    *ARM.state_names,
+    "measured.x",
+    "measured.y",
+    "measured.z",
+    "measured.rx",
+    "measured.ry",
+    "measured.rz",
+]
+EXTRA = [
+    "measured.qw",
+    "measured.qx",
+    "measured.qy",
+    "measured.qz",
+    "time_s",
+    "approach.elbow",
+    "shoulder.l1",
+    "knee.q",
+    "",
+    " pose",
+]
+
+cells = st.one_of(
+    st.floats(-1.0, 1.0).map(repr),
+    st.floats(-700.0, 700.0).map(repr),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["", " ", "nan", "inf", "-inf", "1e999", "abc", "1,5", '"', "#", "p01", "1"]),
+    st.text(max_size=6),
+)
+
+
+@st.composite
+def csv_texts(draw):
+    valid = draw(st.booleans())
+    cols = list(COLUMNS)
+    if not valid:
+        cols = draw(st.lists(st.sampled_from(COLUMNS + EXTRA), min_size=1, max_size=18))
+    cols = draw(st.permutations(cols))
+    m = draw(st.integers(0, 4))
+    rng = np.random.default_rng(draw(st.integers(0, 2**31 - 1)))
+    rows = []
+    for i in range(m):
+        row = []
+        for c in cols:
+            if c == "pose":
+                row.append(f"p{i}")
+            elif c.startswith("measured.") and c[-1] in "xyz" and len(c) == 10:
+                row.append(repr(rng.uniform(-600, 600)))
+            else:
+                row.append(repr(rng.uniform(-1.0, 1.0)))
+        rows.append(row)
+    for _ in range(draw(st.integers(0 if valid else 1, 3))):  # corrupt some cells
+        if rows:
+            r, j = draw(st.integers(0, m - 1)), draw(st.integers(0, len(cols) - 1))
+            rows[r][j] = draw(cells)
+    out = io.StringIO()
+    for line in draw(st.lists(st.sampled_from(["# comment", "", "#"]), max_size=2)):
+        out.write(line + "\n")
+    w = csv.writer(out, lineterminator=draw(st.sampled_from(["\n", "\r\n"])))
+    w.writerow(cols)
+    w.writerows(rows)
+    text = out.getvalue()
+    if draw(st.integers(0, 4)) == 0:  # raw junk somewhere
+        junk = draw(st.text(max_size=20))
+        at = draw(st.integers(0, len(text)))
+        text = text[:at] + junk + text[at:]
+    return text
+
+
+def _check_measurements(text):
+    try:
+        meas = loads_measurements(text, ARM, source="d.csv")
+    except MeasurementFileError as e:
+        assert str(e).startswith("d.csv")
+        return None
+    assert np.all(np.isfinite(meas.q)) and meas.q.shape == (meas.m, ARM.dof)
+    assert meas.measured is not None
+    for T in meas.measured:
+        assert rigid_transform_problem(T) is None
+    try:
+        warnings = check_plausibility(ARM, meas)
+    except MeasurementFileError as e:
+        assert str(e).startswith("d.csv")
+        return meas
+    assert all(isinstance(w, str) and w for w in warnings)
+    return meas
+
+
+@fuzz(60)
+@given(csv_texts())
+def test_measurement_csv_parses_or_raises_measurement_file_error(text):
+    _check_measurements(text)
+
+
+@fuzz(30)
+@given(st.text(max_size=300))
+def test_random_text_as_measurement_file(text):
+    _check_measurements(text)
+
+
+# --------------------------------------------------------------------------- other files
+
+components = st.sampled_from(["vx", "vy", "vz", "wx", "wy", "wz", "twist", "v", ""])
+entries = st.one_of(
+    st.dictionaries(components, st.one_of(finite, _junk()), max_size=3),
+    st.lists(st.one_of(finite, _junk()), max_size=7),
+    _junk(),
+)
+
+
+@fuzz(40)
+@given(
+    st.one_of(
+        st.dictionaries(
+            st.just("frames"),
+            st.dictionaries(st.sampled_from([*ARM.frame_names, "elbow", "x"]), entries),
+        ),
+        _junk(),
+    )
+)
+def test_frame_error_mappings_parse_or_raise_frame_error_file_error(spec):
+    try:
+        X = frame_errors_from_mapping(spec, ARM, "e.json")
+    except FrameErrorFileError as e:
+        assert str(e).startswith("e.json: ")
+        return
+    assert X.shape == (4, 6) and np.all(np.isfinite(X))
+
+
+def _result() -> dict:
+    frames = {
+        name: {
+            "nominal": {"matrix": np.asarray(F).tolist()},
+            "calibrated": {"matrix": np.asarray(F).tolist()},
+            "error_twist": dict.fromkeys(("vx", "vy", "vz", "wx", "wy", "wz"), 0.0),
+        }
+        for name, F in zip(ARM.frame_names, ARM.frames, strict=True)
+    }
+    return {
+        "format": "cdra_jax.calibration_result",
+        "solver": "paper",
+        "converged": True,
+        "result": "successful",
+        "initial": {"delta_p_mm": 1.0, "delta_R_rad": 0.01},
+        "iterations": [{"iteration": 1, "step_norm": 1.0, "delta_p_mm": 0.1, "delta_R_rad": 0.0}],
+        "frames": frames,
+        "identifiability": {"rank": 22, "n_params": 24},
+    }
+
+
+@fuzz(60)
+@given(mutated(_result()))
+def test_mutated_result_files_load_or_raise_result_file_error(spec):
+    try:
+        text = json.dumps(spec)
+    except (TypeError, ValueError):
+        assume(False)
+    try:
+        d = loads_result(text, "r.json")
+    except ResultFileError as e:
+        assert str(e).startswith("r.json: ")
+        return
+    for f in d["frames"].values():
+        for key in ("nominal", "calibrated"):
+            assert rigid_transform_problem(np.asarray(f[key]["matrix"], dtype=float)) is None
+
+
+# --------------------------------------------------------------------------- solvers
+
+paper = eqx.filter_jit(calibrate_paper)
+robust = eqx.filter_jit(calibrate_robust)
+
+
+@st.composite
+def measured_sets(draw):
+    """The 12 measured poses of problem(0), some replaced by random poses, NaN or huge values."""
+    p = problem(0)
+    T = p.T.copy()
+    for _ in range(draw(st.integers(1, 4))):
+        i = draw(st.integers(0, M - 1))
+        what = draw(st.sampled_from(["random", "nan", "huge", "shift"]))
+        if what == "random":
+            T[i] = np.asarray(lie.se3_exp(jnp.asarray(draw(twists))))
+        elif what == "nan":
+            T[i, draw(st.integers(0, 2)), draw(st.integers(0, 3))] = np.nan
+        elif what == "huge":
+            T[i, :3, 3] = draw(st.floats(1e6, 1e12))
+        else:
+            T[i, :3, 3] += draw(st.floats(-50.0, 50.0))
+    return T
+
+
+@fuzz(8)
+@given(measured_sets())
+def test_solvers_never_report_success_with_nan(T):
+    p = problem(0)
+    finite_in = bool(np.all(np.isfinite(T)))
+    for sol in (
+        paper(p.arm, p.q, T, throw=False),
+        robust(p.arm, p.q, T, None, loss="cauchy", solver="paper", throw=False).solution,
+    ):
+        frames_ok = bool(np.all(np.isfinite(np.asarray(sol.frames))))
+        code = int(sol.result._value)
+        if not finite_in:
+            assert code == int(RESULTS.nonfinite._value)
+        elif code == int(RESULTS.successful._value):
+            assert frames_ok and np.all(np.isfinite(np.asarray(sol.errors)))
+        assert frames_ok or code != int(RESULTS.successful._value)
+
+
+def test_huge_rotation_vector_is_a_named_error():
+    # Found by the fuzzer in CI: a rotation vector of 1.9e152 rad gave a non-orthonormal matrix.
+    header = ",".join(COLUMNS)
+    huge = "1.8831635608913214e+152"
+    row = ["p0" if c == "pose" else huge if c == "measured.rx" else "0.1" for c in COLUMNS]
+    with pytest.raises(MeasurementFileError, match=r"d\.csv.*measured\.rx.*above the limit"):
+        loads_measurements(header + "\n" + ",".join(row) + "\n", ARM, source="d.csv")

@@ -1,0 +1,190 @@
+"""The candidate effects: exact geometric model at zero, finite Jacobians, skip reasons, and
+independent oracles (cable forward kinematics, the textbook cantilever)."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _physics_data import base, find
+
+from cdra_jax import lie, tool_pose
+from cdra_jax.arm import Arm
+from cdra_jax.calibration import stacked_system
+from cdra_jax.diagnosis.model import residual_and_jacobian
+from cdra_jax.modules.cables import cable_forward_kinematics, cable_lengths
+from cdra_jax.modules.statics import holding_tensions
+from cdra_jax.physics import (
+    EFFECT_NAMES,
+    Candidate,
+    Features,
+    bending_deflection,
+    candidates,
+    corrected_tool_pose,
+    effect,
+)
+
+
+def test_vocabulary_is_the_design_table():
+    assert EFFECT_NAMES == (
+        "joint_compliance",
+        "cable_elasticity",
+        "cable_scale",
+        "backlash",
+        "periodic_error",
+        "link_bending",
+        "thermal_drift",
+    )
+    b = base()
+    locs = {(c.name, c.location) for c in b.everything if c.name != "probe"}
+    assert ("link_bending", "upper_arm") in locs and ("link_bending", "forearm") in locs
+    assert ("thermal_drift", "base") in locs and ("link_bending", "base") not in locs
+    for name in ("joint_compliance", "cable_elasticity", "cable_scale", "backlash"):
+        assert {loc for n, loc in locs if n == name} == {"shoulder", "elbow", "wrist"}
+
+
+def test_zero_parameters_give_the_geometric_model_exactly():
+    b = base()
+    T = corrected_tool_pose(b.actual, b.q, b.F, jnp.zeros(b.F.n_params))
+    # identity corrections: equal up to the rounding of a different order of products
+    np.testing.assert_allclose(np.asarray(T), np.asarray(tool_pose(b.actual, b.q)), atol=1e-12)
+
+
+def test_features_shapes_and_jacobians_finite():
+    b = base()
+    m, k = b.q.shape[0], len(b.arm.modules)
+    assert b.F.state.shape == (m, b.arm.dof, b.F.n_params)
+    assert b.F.module_twist.shape == (m, k, 6, b.F.n_params)
+    assert b.F.frame_deflection.shape == (m, k + 1, 6, b.F.n_params)
+    for c in b.everything:
+        sl = b.cols[c]
+        assert sl.stop - sl.start == len(c.parameters(b.arm)), c.label
+        cols = [b.F.state[..., sl], b.F.module_twist[..., sl], b.F.frame_deflection[..., sl]]
+        assert all(bool(jnp.all(jnp.isfinite(x))) for x in cols), c.label
+        assert max(float(jnp.abs(x).max()) for x in cols) > 0, f"{c.label} has no effect"
+    # d residual / d (frame errors, theta) through the exact chain (the diagnosis' compiled
+    # Jacobian): finite, non-zero for every column, and the frame-error block is Eq. 8's D
+    # (minus: the residual is measured minus model).
+    T = tool_pose(b.actual, b.q)
+    G = jnp.broadcast_to(jnp.eye(6), (b.q.shape[0], 6, 6))
+    y0 = jnp.zeros(b.arm.n_params + b.F.n_params)
+    r, J = residual_and_jacobian(y0, b.actual, b.q, T, G, b.F)
+    assert float(jnp.abs(r).max()) < 1e-9
+    assert bool(jnp.all(jnp.isfinite(J)))
+    assert bool(jnp.all(jnp.abs(J).max(axis=0) > 0))
+    _, D = stacked_system(b.actual, b.q, T)
+    np.testing.assert_allclose(J[:, : b.arm.n_params], -D, atol=1e-9)
+
+
+def test_single_candidate_pure_function_matches_the_stacked_features():
+    b = base()
+    c = find("joint_compliance", "elbow")
+    params = jnp.array([2e-7, -1e-7])
+    T = c.tool_pose(b.actual, b.q, b.aux, params)
+    theta = jnp.zeros(b.F.n_params).at[b.cols[c]].set(params)
+    np.testing.assert_allclose(T, corrected_tool_pose(b.actual, b.q, b.F, theta), atol=1e-9)
+    with pytest.raises(ValueError, match="theta must have shape"):
+        corrected_tool_pose(b.actual, b.q, b.F, jnp.zeros(3))
+
+
+def _replace_modules(arm: Arm, **changes) -> Arm:
+    mods = tuple(dataclasses.replace(m, **changes) for m in arm.modules)
+    return eqx.tree_at(lambda a: a.modules, arm, mods)
+
+
+def test_skip_reasons_name_what_is_missing():
+    b = base()
+    reasons = {(c.name, c.location, c.variant): why for c, why in candidates(b.arm, ["time_s"])}
+    assert "approach.wrist" in reasons[("backlash", "wrist", "state")]
+    assert reasons[("thermal_drift", "base", "")] is None
+    reasons = {(c.name, c.location): why for c, why in candidates(b.arm, [])}
+    assert "time_s" in reasons[("thermal_drift", "base")]
+    massless = _replace_modules(b.arm, mass=None, com=None)
+    reasons = {(c.name, c.location): why for c, why in candidates(massless, [])}
+    assert "mass" in reasons[("joint_compliance", "shoulder")]
+    assert "mass" in reasons[("link_bending", "forearm")]
+    assert reasons[("cable_scale", "elbow")] is None
+    # with a payload column the loads exist again
+    reasons = {(c.name, c.location): why for c, why in candidates(massless, ["payload_kg"])}
+    assert reasons[("joint_compliance", "shoulder")] is None
+    cableless = _replace_modules(b.arm, cable_base=None, cable_platform=None, cable_offset=None)
+    reasons = {(c.name, c.location): why for c, why in candidates(cableless, [])}
+    assert "no cables" in reasons[("cable_elasticity", "wrist")]
+    assert "no cables" in reasons[("cable_scale", "shoulder")]
+    with pytest.raises(ValueError, match="unknown effect"):
+        effect("gear_wobble")
+
+
+def _platform_rotation(c: Candidate, arm, q, aux, value, i):
+    """Module i's platform rotation from the candidate's correction alone."""
+    f = c.features(arm, q, aux)
+    theta = jnp.full(f.n_params, value)
+    dq = jnp.einsum("mdp,p->md", f.state, theta)
+    xi = jnp.einsum("mkcp,p->mkc", f.module_twist, theta)[:, i]
+    qi = arm.split_state(q + dq)[i]
+    return lie.se3_exp(xi)[:, :3, :3] @ arm.modules[i].pose(qi)[:, :3, :3]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["cable_elasticity", "cable_scale"])
+def test_cable_effects_agree_with_cable_forward_kinematics(name):
+    """Oracle: the module state the stretched/scaled cable lengths give by the (nonlinear,
+    least-squares) cable forward kinematics of cdra_jax.modules."""
+    b = base()
+    arm, q, aux = b.arm, b.q[:6], {k: v[:6] for k, v in b.aux.items()}
+    mod = arm.modules[0]
+    qs = arm.split_state(q)[0]
+    if name == "cable_elasticity":
+        c, value = find(name, "shoulder"), 0.01  # mm/N: 100 N/mm cables
+        lengths = cable_lengths(mod, qs) + value * holding_tensions(arm, q)["shoulder"].tensions
+    else:
+        c, value = find(name, "shoulder", "from_home"), 0.01
+        l0 = cable_lengths(mod, jnp.zeros_like(qs))
+        lengths = l0 + (1 + value) * (cable_lengths(mod, qs) - l0)
+    # stretched lengths are not a consistent set: least squares over the 6 cables
+    fk = jax.jit(lambda L: cable_forward_kinematics(mod, L, initial=qs, residual_tol=1e3))(lengths)
+    assert bool(jnp.all(fk.successful))
+    R_oracle = lie.so3_exp(fk.state)
+    R_model = _platform_rotation(c, arm, q, aux, value, 0)
+    R_nominal = mod.pose(qs)[:, :3, :3]
+    moved = lie.rotation_angle(jnp.swapaxes(R_nominal, -1, -2) @ R_oracle)
+    err = lie.rotation_angle(jnp.swapaxes(R_model, -1, -2) @ R_oracle)
+    assert float(moved.min()) > 1e-4  # the effect is visible ...
+    assert float((err / moved).max()) < 0.05  # ... and the first-order model gets it right
+
+
+def test_bending_force_part_is_the_textbook_cantilever():
+    """Upper arm horizontal, massless links, payload at the elbow end only through the tip:
+    delta = F L^3 / (3 E I), theta = F L^2 / (2 E I) (Euler-Bernoulli)."""
+    b = base()
+    arm = _replace_modules(b.arm, mass=None, com=None)
+    # a payload at the tool with the elbow straight and the wrist at rest puts the load on the
+    # link axis line; turn the shoulder by pi/2 about y so that the arm is horizontal
+    q = jnp.array([[0.0, np.pi / 2, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    payload = 2.0
+    d = bending_deflection(arm, q, 1, payload, split=True)[0]
+    F = payload * 9.81
+    L = 300.0
+    force = d[:, 0]
+    np.testing.assert_allclose(float(jnp.linalg.norm(force[:3])), F * L**3 / 3, rtol=1e-9)
+    np.testing.assert_allclose(float(jnp.linalg.norm(force[3:])), F * L**2 / 2, rtol=1e-9)
+    # arm upright: no transverse force; the payload hangs 20 mm beside the link axis (the tool
+    # frame's offset), a tip moment M = F * 20 mm: theta = M L, delta = M L^2 / 2
+    d_up = bending_deflection(arm, jnp.zeros((1, 7)), 1, payload, split=True)[0]
+    assert float(jnp.abs(d_up[:, 0]).max()) < 1e-6
+    M = F * 20.0
+    np.testing.assert_allclose(float(jnp.linalg.norm(d_up[3:, 1])), M * L, rtol=1e-9)
+    np.testing.assert_allclose(float(jnp.linalg.norm(d_up[:3, 1])), M * L**2 / 2, rtol=1e-9)
+
+
+def test_backlash_and_drift_follow_their_auxiliaries():
+    b = base()
+    c = find("backlash", "elbow")
+    f = c.features(b.arm, b.q, b.aux)
+    j = b.arm.state_names.index("elbow.q")
+    np.testing.assert_array_equal(f.state[:, j, 0], -b.aux["approach.elbow"])
+    d = find("thermal_drift", "base").features(b.arm, b.q, b.aux)
+    np.testing.assert_array_equal(d.frame_deflection[:, 0, 2, 2], b.aux["time_s"])
+    assert Features.zeros(b.arm, 3, 2).state.shape == (3, b.arm.dof, 2)

@@ -1,0 +1,211 @@
+"""Sweeps: chunking and sharding never change a trial, the table, the CLI and the plot.
+
+All sweeps here share one cell shape (m = 5, solver "weighted", chunk 4, 10 held-out states),
+so the vmapped trial function is compiled once per process.
+"""
+
+import importlib.util
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import matplotlib
+import numpy as np
+import pytest
+
+from cdra_jax import NoiseModel, apply_frame_errors, calibrate_paper, deviation_metrics, tool_pose
+from cdra_jax.cli_sweep import main as sweep_main
+from cdra_jax.simulation import simulate_trial
+from cdra_jax.sweeps import (
+    COLUMNS,
+    parse_noise_levels,
+    read_sweep,
+    run_sweep,
+    trial_key,
+)
+
+matplotlib.use("Agg")
+
+LEVELS = [(0.08, 1e-3), (0.2, 2e-3)]
+CELL = dict(solvers=["weighted"], seed=7, chunk=4, m_verify=10, progress=False)
+ROOT = Path(__file__).resolve().parents[1]
+FLOATS = [c for c in COLUMNS if c not in ("solver", "result", "converged")]
+
+
+@pytest.fixture(scope="module")
+def table(cdra):
+    return run_sweep(cdra, LEVELS, [5], trials=3, **CELL)
+
+
+def _rows(table):
+    """(noise_pos, trial) -> row index."""
+    return {
+        (float(p), int(t)): i
+        for i, (p, t) in enumerate(zip(table["noise_pos"], table["trial"], strict=True))
+    }
+
+
+def _assert_same_trials(a, b):
+    ra, rb = _rows(a), _rows(b)
+    common = sorted(set(ra) & set(rb))
+    assert common
+    ia = [ra[k] for k in common]
+    ib = [rb[k] for k in common]
+    for c in COLUMNS:
+        x, y = a[c][ia], b[c][ib]
+        if c in FLOATS and x.dtype.kind == "f":
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12, err_msg=c)
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=c)
+
+
+def test_table_layout(table):
+    assert len(table) == 6
+    assert list(table.columns) == list(COLUMNS)
+    assert set(table["result"]) == {"successful"} and table["converged"].all()
+    assert set(zip(table["noise_pos"], table["noise_rot"], strict=True)) == set(LEVELS)
+    assert sorted(table["trial"].tolist()) == [0, 0, 1, 1, 2, 2]
+    assert (table["m"] == 5).all() and (table["rank"] == 22).all()
+    assert (table["solver"] == "weighted").all() and (table["seed"] == 7).all()
+    # held-out against the truth excludes the measurement noise that dp_verify includes
+    assert np.all(table["dp_heldout"] < table["dp_verify"] + 1.0)
+    assert np.all(table["param_err"] >= table["param_err_v"])
+    summary = table.summary("dp_heldout")
+    assert [(s["noise_pos"], s["m"], s["n"]) for s in summary] == [(0.08, 5, 3), (0.2, 5, 3)]
+    assert summary[0]["q10"] <= summary[0]["q50"] <= summary[0]["q90"]
+
+
+def test_chunking_does_not_change_trials(cdra, table):
+    # trials=2 puts (level 2, trial 0) at another place of the first chunk and (level 2,
+    # trial 1) into the first chunk instead of the second; reversing the levels moves every
+    # trial again, and the last chunk is padded differently.
+    _assert_same_trials(table, run_sweep(cdra, LEVELS, [5], trials=2, **CELL))
+    _assert_same_trials(table, run_sweep(cdra, LEVELS[::-1], [5], trials=3, **CELL))
+
+
+@pytest.mark.slow
+def test_trial_matches_direct_computation(cdra, table):
+    """One row against simulate_trial + calibrate_paper run directly with trial_key."""
+    noise = NoiseModel(*LEVELS[1])
+    i = _rows(table)[(LEVELS[1][0], 2)]
+    q, T, qv, Tv, X = simulate_trial(trial_key(7, 5, 2), cdra, 5, noise=noise, m_verify=10)
+    sol = jax.jit(lambda q, T: calibrate_paper(cdra, q, T, noise, throw=False))(q, T)
+    model = tool_pose(cdra.with_frames(sol.frames), qv)
+    dp_h, dR_h = deviation_metrics(tool_pose(apply_frame_errors(cdra, X), qv), model)
+    dp_v, _ = deviation_metrics(Tv, model)
+    assert int(sol.iterations) == table["iterations"][i]
+    np.testing.assert_allclose(
+        [sol.final_delta_p, sol.final_delta_R, dp_h, dR_h, dp_v],
+        [table[c][i] for c in ("dp_fit", "dR_fit", "dp_heldout", "dR_heldout", "dp_verify")],
+        rtol=1e-9,
+    )
+
+
+@pytest.mark.slow
+def test_sharded_over_two_devices_matches(table, tmp_path):
+    """The same sweep on 2 (forced host) devices in a subprocess gives the same rows."""
+    out = tmp_path / "sharded.csv"
+    script = textwrap.dedent(
+        f"""
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        import numpy as np
+        from cdra_jax import default_arm
+        from cdra_jax.sweeps import _batched_trials, run_sweep
+        assert len(jax.devices()) == 2, jax.devices()
+        arm = default_arm()
+        t = run_sweep(arm, {LEVELS!r}, [5], trials=3, solvers=["weighted"], seed=7, chunk=4,
+                      m_verify=10, progress=False)
+        assert t.meta["devices"].count("cpu") == 2, t.meta["devices"]
+        t.save({str(out)!r})
+        f = _batched_trials(5, "weighted", True, 1.0, 0.05, 10, None, None, tuple(jax.devices()))
+        mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("trials",))
+        sh = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("trials"))
+        tr = jax.device_put(np.arange(4, dtype=np.int32), sh)
+        nz = jax.device_put(np.full(4, 0.1), sh)
+        o = f(arm, jax.random.PRNGKey(7), tr, nz, nz * 0.01)
+        assert len(o["dp_fit"].sharding.device_set) == 2
+        """
+    )
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    ).strip()
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    proc = subprocess.run(
+        [sys.executable, "-c", script], env=env, cwd=ROOT, capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    sharded = read_sweep(out)
+    assert len(sharded) == len(table)
+    _assert_same_trials(table, sharded)
+
+
+def test_csv_round_trip_and_errors(table, tmp_path):
+    path = table.save(tmp_path / "t.csv")
+    back = read_sweep(path)
+    for c in COLUMNS:
+        np.testing.assert_array_equal(back[c], table[c], err_msg=c)
+    assert back.meta["seed"] == "7" and back.meta["arm"] == "cdra"
+    with pytest.raises(FileExistsError, match="force"):
+        table.save(path)
+    table.save(path, force=True)
+    lines = path.read_text().splitlines()
+    header_at = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    cells = lines[header_at + 2].split(",")
+    cells[COLUMNS.index("dp_fit")] = "abc"
+    lines[header_at + 2] = ",".join(cells)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=rf"line {header_at + 3}: column 'dp_fit'"):
+        read_sweep(bad)
+    with pytest.raises(ValueError, match="unknown table format"):
+        table.save(tmp_path / "t.xlsx")
+    if importlib.util.find_spec("pyarrow") is None:
+        with pytest.raises(ValueError, match="pyarrow"):
+            table.save(tmp_path / "t.parquet")
+    else:
+        back = read_sweep(table.save(tmp_path / "t.parquet"))
+        for c in COLUMNS:
+            np.testing.assert_array_equal(back[c], table[c], err_msg=c)
+
+
+def test_cli_and_plot(table, tmp_path, capsys):
+    out, png = tmp_path / "r.csv", tmp_path / "r.png"
+    argv = [
+        "--noise-pos", "0.08,0.2", "--noise-rot", "0.001,0.002", "--poses", "5",
+        "--solvers", "weighted", "--trials", "3", "--chunk", "4", "--seed", "7",
+        "--verify", "10", "--out", str(out), "--plot", str(png), "--no-progress",
+    ]  # fmt: skip
+    assert sweep_main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "6 trials" in printed and "weighted" in printed
+    _assert_same_trials(table, read_sweep(out))
+    assert png.stat().st_size > 1000
+    assert sweep_main(argv) == 1
+    assert "exists" in capsys.readouterr().err
+    assert sweep_main([*argv[:2], "--noise-rot", "0.001,0.002,0.003", *argv[4:], "--force"]) == 1
+    assert "rotation levels" in capsys.readouterr().err
+
+    from cdra_jax.plots_sweeps import plot_sweep
+
+    ax = plot_sweep(table, "param_err")
+    assert len(ax.get_lines()) == 2  # one line per noise level for the one solver
+    assert "param_err" in ax.get_ylabel()
+
+
+def test_bad_sweeps(cdra):
+    with pytest.raises(ValueError, match="both are zero"):
+        parse_noise_levels([0.0], [1e-3])
+    with pytest.raises(ValueError, match="one rotation level for all"):
+        parse_noise_levels([0.1, 0.2], [1e-3, 2e-3, 3e-3])
+    assert parse_noise_levels([0.1, 0.2], [1e-3]) == [(0.1, 1e-3), (0.2, 1e-3)]
+    with pytest.raises(ValueError, match="weighted"):
+        run_sweep(cdra, [(0, 0)], [5], ["weighted"], trials=1)
+    with pytest.raises(ValueError, match="minimum of 4"):
+        run_sweep(cdra, LEVELS, [3], ["paper"], trials=1)
+    with pytest.raises(ValueError, match="unknown solver"):
+        run_sweep(cdra, LEVELS, [5], ["newton"], trials=1)
