@@ -47,10 +47,6 @@ calibrated frames to ``~1e-9`` (measured over 1000 trials of 5 to 15 CDRA poses)
 a smaller pivot (some of 5 to 8 poses; none of 1000 with 15) are solved with SVD steps.
 """
 
-REDO_SLOTS = 8
-"""Trials of a chunk re-solved with SVD steps at a time (see :func:`_paper_solver`)."""
-
-
 def calibrate_paper(
     arm: Arm,
     q: ArrayLike,
