@@ -47,6 +47,7 @@ calibrated frames to ``~1e-9`` (measured over 1000 trials of 5 to 15 CDRA poses)
 a smaller pivot (some of 5 to 8 poses; none of 1000 with 15) are solved with SVD steps.
 """
 
+
 def calibrate_paper(
     arm: Arm,
     q: ArrayLike,
