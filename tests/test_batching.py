@@ -1,12 +1,21 @@
-"""Chunked and queued batching (cdra_jax.calibration.batching) equal plain vmap per trial."""
+"""Chunked batching (cdra_jax.calibration.batching) equals plain vmap per trial."""
 
 from __future__ import annotations
+
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
-from cdra_jax.calibration.batching import Iteration, chunked_vmap, iterate, queued_vmap
+from cdra_jax.calibration.batching import chunked_vmap
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def _newton_sqrt(a, x0, tol):
@@ -43,38 +52,46 @@ def test_chunked_vmap_equals_vmap():
     np.testing.assert_array_equal(xx[0], x_ref)
 
 
-def test_queued_vmap_equals_iterate_per_trial():
-    tol = 1e-12
-
-    def init(a, x0):
-        return jnp.asarray(0), x0, a
-
-    def step(c, a, x0):
-        k, x, _ = c
-        return k + 1, 0.5 * (x + a / x), a
-
-    def running(c):
-        k, x, a = c
-        return (jnp.abs(x * x - a) > tol * a) & (k < 100)
-
-    def result(c):
-        return c[0], c[1]
-
-    def finish(r, a, x0):
-        k, x = r
-        return {"k": k, "x": x, "err": x * x - a}
-
-    it = Iteration(init=init, step=step, running=running, result=result, finish=finish)
-    a = jnp.concatenate([jnp.logspace(-3, 12, 13), jnp.asarray([4.0])])
-    x0 = jnp.ones_like(a).at[-1].set(2.0)  # the last trial needs no step at all
-    ref = jax.jit(jax.vmap(lambda aa, xx: iterate(it, aa, xx)))(a, x0)
-    for slots in (1, 4, 64):
-        got = jax.jit(jax.vmap(queued_vmap(it, slots, chunk_size=5)))(a, x0)
-        for key in ("k", "x"):
-            np.testing.assert_array_equal(got[key], ref[key], err_msg=f"{key}, {slots} slots")
-        np.testing.assert_array_less(
-            np.abs(got["err"] - ref["err"]), 1e-15 * np.asarray(a) + 1e-300
+@pytest.mark.slow
+def test_lm_runs_with_the_batch_sharded_over_two_cpu_devices():
+    """The chunked LM solver, jitted with the trial axis sharded over 2 (forced host) devices as
+    the sweeps do (weighted, with noise), finishes and gives the unsharded results. A work queue
+    (a data-dependent gather of trials inside a loop) deadlocked there. The paper solver is
+    checked the same way by tests/test_sweeps.py. In a subprocess, with a timeout."""
+    script = textwrap.dedent(
+        """
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        import numpy as np
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+        from cdra_jax import NoiseModel, calibrate_lm, default_arm, simulation
+        assert len(jax.devices()) == 2, jax.devices()
+        arm, noise = default_arm(), NoiseModel(0.05, 1e-3)
+        keys = jax.random.split(jax.random.PRNGKey(0), 4)
+        q, T, *_ = jax.vmap(lambda k: simulation.simulate_trial(k, arm, 5, noise=noise))(keys)
+        sh = NamedSharding(Mesh(np.asarray(jax.devices()), ("t",)), PartitionSpec("t"))
+        f = jax.vmap(lambda q, T: calibrate_lm(arm, q, T, noise, throw=False))
+        sol = jax.jit(f, in_shardings=(sh, sh), out_shardings=sh)(
+            jax.device_put(q, sh), jax.device_put(T, sh)
         )
-    assert int(ref["k"][-1]) == 0 and len(set(np.asarray(ref["k"]).tolist())) > 4
-    one = queued_vmap(it, 4, chunk_size=5)(a[2], x0[2])
-    assert one["x"] == ref["x"][2]
+        assert len(sol.errors.sharding.device_set) == 2
+        assert np.all(np.asarray(sol.converged))
+        ref = jax.jit(f)(q, T)
+        np.testing.assert_allclose(sol.errors, ref.errors, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(sol.iterations, ref.iterations)
+        """
+    )
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    ).strip()
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    proc = subprocess.run(
+        [sys.executable, "-c", script],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]

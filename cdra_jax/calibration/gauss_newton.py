@@ -23,6 +23,8 @@ Performance (see ``benchmarks/README.md``). The solver is written for Monte-Carl
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
@@ -103,13 +105,15 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
     solution (a pose set with a singular value that the normal equations cannot resolve,
     below ``~1e-7 s_max`` but above ``rcond s_max``, e.g. some sets of 4 or 5 CDRA poses: the
     fast step may have dropped a direction that the SVD step keeps), or where a step's smallest
-    kept pivot is below :data:`RESOLVED_PIVOT`. A batch is solved in passes: the first fast,
-    the next ones with SVD steps on the trials still to redo, gathered into a full batch. The
-    result is therefore the SVD solver's, up to rounding, and the solver is compiled once.
+    kept pivot is below :data:`RESOLVED_PIVOT`. A batch (a chunk under ``vmap``) is solved
+    fast, and, only when one of its trials is to be redone, once more with SVD steps, whose
+    results replace those of the trials to redo. The result is therefore the SVD solver's, up to
+    rounding. (No data-dependent gather of the trials to redo: under ``jit`` with the batch
+    sharded over several CPU devices, as the sweeps do, such a gather inside a loop deadlocked.)
     """
 
     def run(use_svd, frames0, poses, measured, *noise_std):
-        """One trial; ``use_svd`` (a traced, unbatched bool) picks the step."""
+        """One trial; ``use_svd`` (a static bool) picks the step."""
         dtype = measured.dtype
         n = frames0.shape[0] * 6
         k_frames = frames0.shape[0]
@@ -132,9 +136,7 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
             return jnp.where(finite, X, nan), rank, pivot >= RESOLVED_PIVOT
 
         def step_of(lin):
-            if not fast_allowed:
-                return svd_step(lin)
-            return jax.lax.cond(use_svd, svd_step, normal_step, lin)
+            return svd_step(lin) if use_svd or not fast_allowed else normal_step(lin)
 
         # One linearisation per pass: a pass steps while the iteration runs, and the last pass
         # only linearises the final model (for Eqs. 20-21 and the rank), so that the model
@@ -200,38 +202,25 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
             solver=solver,
         )
         rank_lo, rank_hi, resolved = steps_ok
-        redo = fast_allowed & ~use_svd & (sol.result != RESULTS.nonfinite) & (k > 0)
+        redo = (sol.result != RESULTS.nonfinite) & (k > 0) & (fast_allowed and not use_svd)
         redo = redo & ((rank_lo != rank) | (rank_hi != rank) | ~resolved)
         return sol, redo
 
     def solve_batch(*args):
-        """A batch (leading axis on every argument), solved in passes (see above)."""
-        size = jax.tree.leaves(args)[0].shape[0]
+        """A batch (leading axis on every argument): fast, then SVD steps where needed."""
+        sol, redo = jax.vmap(functools.partial(run, False))(*args)
 
-        def one_pass(state):
-            sol, todo, first = state
-            # First pass: every trial, fast. Then: the trials to redo, gathered in front (the
-            # rest of the batch is padding whose results are discarded), with SVD steps.
-            idx = jnp.where(first, jnp.arange(size), jnp.argsort(~todo, stable=True))
-            out, redo = jax.vmap(lambda *a: run(~first, *a))(*[a[idx] for a in args])
-            take = first | todo[idx]
-            sol = jax.tree.map(
-                lambda s, o: s.at[idx].set(
-                    jnp.where(take.reshape(take.shape + (1,) * (o.ndim - 1)), o, s[idx])
-                ),
-                sol,
-                out,
-            )
-            todo = jnp.where(first, redo, todo.at[idx].set(todo[idx] & ~take))
-            return sol, todo, jnp.asarray(False)
+        def redo_with_svd(sol):
+            again, _ = jax.vmap(functools.partial(run, True))(*args)
 
-        def more(state):
-            return state[2] | jnp.any(state[1])
+            def take(a, b):
+                return jnp.where(redo.reshape(redo.shape + (1,) * (a.ndim - 1)), b, a)
 
-        sol0 = jax.eval_shape(lambda: jax.vmap(lambda *a: run(jnp.asarray(False), *a))(*args))
-        sol0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), sol0[0])
-        state = (sol0, jnp.zeros(size, bool), jnp.asarray(True))
-        return jax.lax.while_loop(more, one_pass, state)[0]
+            return jax.tree.map(take, sol, again)
+
+        if not _normal_equations_apply(args[2].dtype, rcond):
+            return sol  # SVD steps already: nothing to redo
+        return jax.lax.cond(jnp.any(redo), redo_with_svd, lambda sol: sol, sol)
 
     def solve(*args):
         return jax.tree.map(lambda x: x[0], solve_batch(*[a[None] for a in args]))
