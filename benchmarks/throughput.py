@@ -56,18 +56,32 @@ from cdra_jax.simulation import simulate_trial  # noqa: E402
 
 SOLVERS = ("paper", "lm", "numpy", "numpy_vec", "scipy")
 _N_CHUNKS = 5
+_GEN_BLOCK = 100_000
 
 
 # --------------------------------------------------------------------------- problems
 def make_problems(arm, n_trials: int, m: int, noise: NoiseModel | None, seed: int = 0):
-    """``(q (N, m, dof), measured (N, m, 4, 4), preset errors (N, K+1, 6))`` as NumPy arrays."""
+    """``(q (N, m, dof), measured (N, m, 4, 4), preset errors (N, K+1, 6))`` as NumPy arrays.
+
+    Generated in blocks of at most ``_GEN_BLOCK`` trials (one compiled simulator), so that the
+    simulator's intermediates stay small for N = 10^6.
+    """
     keys = jax.random.split(jax.random.PRNGKey(seed), n_trials)
     sim = jax.jit(
         jax.vmap(lambda k: simulate_trial(k, arm, m, d_v=1.0, d_w=0.05, noise=noise, m_verify=1))
     )
-    q, T, _, _, X = sim(keys)
+    block = min(n_trials, _GEN_BLOCK)
+    parts = []
+    for a in range(0, n_trials, block):
+        kb = keys[a : a + block]
+        pad = block - kb.shape[0]
+        if pad:  # the last block, padded to the compiled size
+            kb = jnp.concatenate([kb, jnp.broadcast_to(kb[:1], (pad,) + kb.shape[1:])])
+        q, T, _, _, X = sim(kb)
+        parts.append(tuple(np.asarray(x)[: block - pad] for x in (q, T, X)))
+    q, T, X = (np.concatenate(p) for p in zip(*parts, strict=True))
     k1 = len(arm.frame_names)
-    return np.asarray(q), np.asarray(T), np.asarray(X).reshape(n_trials, k1, 6)
+    return q, T, X.reshape(n_trials, k1, 6)
 
 
 # --------------------------------------------------------------------------- timing
@@ -75,18 +89,26 @@ def _block(x):
     return jax.block_until_ready(x)
 
 
-def time_jax(solve: Callable, q: np.ndarray, T: np.ndarray, repeats: int) -> dict:
-    """Compile time, first-call time and steady-state median of a jitted batched solver."""
+def time_jax(
+    solve: Callable, q: np.ndarray, T: np.ndarray, repeats: int, first_call: bool = True
+) -> dict:
+    """Compile time, first-call time and steady-state median of a jitted batched solver.
+
+    ``first_call=False`` skips the separate first call (trace + compile + run), whose time is
+    then reported as NaN: the scaling sweep does so for its large batches.
+    """
     qj, Tj = jnp.asarray(q), jnp.asarray(T)
     _block((qj, Tj))
     fn = jax.jit(jax.vmap(solve))
     t0 = time.perf_counter()
     compiled = fn.lower(qj, Tj).compile()
     compile_s = time.perf_counter() - t0
-    fresh = jax.jit(jax.vmap(solve))  # a separate jit: its first call traces and compiles again
-    t0 = time.perf_counter()
-    _block(fresh(qj, Tj))
-    first_s = time.perf_counter() - t0
+    first_s = float("nan")
+    if first_call:
+        fresh = jax.jit(jax.vmap(solve))  # a separate jit: its first call traces and compiles
+        t0 = time.perf_counter()
+        _block(fresh(qj, Tj))
+        first_s = time.perf_counter() - t0
     times = []
     sol = None
     for _ in range(repeats):
@@ -241,7 +263,7 @@ def scaling(args) -> dict:
     fns = dict(paper=calibrate_paper, lm=calibrate_lm)
     print(f"# devices: {jax.devices()}")
     print("# trials/s against N (m = 15)")
-    print(f"{'N':>9s} " + " ".join(f"{s:>12s}" for s in solvers))
+    print(f"{'N':>9s} " + " ".join(f"{s:>12s} {'compile s':>9s}" for s in solvers))
     for n in args.scaling_trials:
         q, T, _ = make_problems(arm, n, 15, None, args.seed)
         row = dict(N=n)
@@ -249,28 +271,53 @@ def scaling(args) -> dict:
             if s == "lm" and n > args.lm_max_trials:
                 row[s] = None
                 continue
-            r = time_jax(lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False), q, T, args.repeats)
+            r = time_jax(
+                lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False),
+                q,
+                T,
+                _scaling_repeats(args.repeats, n),
+                first_call=False,
+            )
             row[s] = r["trials_per_s"]
             row[f"{s}_compile_s"] = r["compile_s"]
+            row[f"{s}_repeats"] = len(r["all_s"])
         out["by_trials"].append(row)
-        print(f"{n:9d} " + " ".join(_fmt(row[s]) for s in solvers), flush=True)
+        print(f"{n:9d} " + " ".join(_fmt(row, s) for s in solvers), flush=True)
         del q, T
     print(f"# trials/s against m (N = {args.scaling_n})")
-    print(f"{'m':>9s} " + " ".join(f"{s:>12s}" for s in solvers))
+    print(f"{'m':>9s} " + " ".join(f"{s:>12s} {'compile s':>9s}" for s in solvers))
     for m in args.scaling_poses:
         q, T, _ = make_problems(arm, args.scaling_n, m, None, args.seed)
         row = dict(m=m)
         for s in solvers:
-            r = time_jax(lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False), q, T, args.repeats)
+            r = time_jax(
+                lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False),
+                q,
+                T,
+                _scaling_repeats(args.repeats, args.scaling_n * m // 15),
+                first_call=False,
+            )
             row[s] = r["trials_per_s"]
             row[f"{s}_compile_s"] = r["compile_s"]
+            row[f"{s}_repeats"] = len(r["all_s"])
         out["by_poses"].append(row)
-        print(f"{m:9d} " + " ".join(_fmt(row[s]) for s in solvers), flush=True)
+        print(f"{m:9d} " + " ".join(_fmt(row, s) for s in solvers), flush=True)
     return out
 
 
-def _fmt(v) -> str:
-    return f"{'-':>12s}" if v is None else f"{v:12.1f}"
+def _scaling_repeats(repeats: int, work: int) -> int:
+    """Steady-state calls for a batch of ``work`` trial-equivalents (m = 15): ``repeats`` up to
+    10^4, then fewer (3 up to 10^5, 1 beyond), so that N = 10^6 runs once."""
+    if work <= 10_000:
+        return repeats
+    return min(repeats, 3) if work <= 100_000 else 1
+
+
+def _fmt(row: dict, solver: str) -> str:
+    """``trials/s compile_s`` of one solver in a scaling row (dashes where it did not run)."""
+    if row[solver] is None:
+        return f"{'-':>12s} {'-':>9s}"
+    return f"{row[solver]:12.1f} {row[f'{solver}_compile_s']:9.2f}"
 
 
 def machine() -> dict:
@@ -287,6 +334,7 @@ def machine() -> dict:
         jax=jax.__version__,
         numpy=np.__version__,
         devices=[str(d) for d in jax.devices()],
+        load_average=list(os.getloadavg()),
     )
 
 

@@ -2,9 +2,9 @@
 
 The parameters are the error twists ``X`` (Eq. 8) of all fixed transforms at once,
 ``F_j(X) = exp(hat(X_j)) F_j`` (Eqs. 11-14 in one step rather than accumulated), and the
-residual is the (optionally whitened) stacked ``log(T_meas T(X)^-1)^v`` of Eq. 7. The Jacobian
-comes from autodiff. The loop drives ``optimistix.LevenbergMarquardt`` step by step so that the
-deviation metrics (Eqs. 20-21) are recorded at every step, as for the paper solver.
+residual is the (optionally whitened) stacked ``log(T_meas T(X)^-1)^v`` of Eq. 7. The loop
+drives ``optimistix.LevenbergMarquardt`` step by step so that the deviation metrics
+(Eqs. 20-21) are recorded at every step, as for the paper solver.
 
 Scaling. The optimiser works in whitened coordinates ``u`` of the identifiable subspace:
 ``X = V S^+ u`` from the SVD ``D~ = U S V^T`` of the stacked Jacobian at the nominal model
@@ -14,22 +14,45 @@ lever arm, hundreds of mm, and by the weights), and the unidentifiable direction
 two, see :mod:`cdra_jax.identifiability`) have exactly zero columns: they are never moved
 and the damped steps never wander along them on rounding noise. Without this the unscaled
 damped steps at the rounding floor are mostly rejected and the solve needs tens of extra steps.
+Besides optimistix' own termination the loop stops on MINPACK-style tests of the next
+proposed step (:func:`_converged`).
+
+Performance (see ``benchmarks/README.md``):
+
+* the residual is evaluated in the pose-last layout of :mod:`.kernels`, and returns the
+  deviation metrics of its point as optimistix' ``aux``, so that recording them costs nothing;
+* its Jacobian is analytic (:func:`residual_jacobian`, a ``jax.custom_jvp`` in ``u``):
+  optimistix linearises the residual at every step and its QR solver materialises the
+  Jacobian, which with autodiff costs one forward-mode pass through the chain and the
+  logarithm per column and here two small matrix products;
+* under ``vmap`` the trials run in chunks (:func:`.batching.chunked_vmap`). (A work queue
+  that refills the slot of a finished trial was tried and dropped: with the rescaled subspace
+  and the stop tests above the iteration counts are uniform, 8 to 14 for the CDRA with noise,
+  and the queue was slower, and it deadlocked under ``jit`` with the batch sharded over two
+  CPU devices.)
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from jax import Array
 from jax.typing import ArrayLike
 
 from .. import lie
-from ..arm import Arm, chain, module_poses
-from .linear import default_rcond, min_norm_lstsq
-from .model import NoiseModel, _stack, deviation_metrics, whitening
-from .solution import RESULTS, CalibrationSolution
-from .validation import check_problem
+from ..arm import Arm
+from . import kernels
+from .batching import chunked_vmap
+from .linear import default_rcond
+from .model import NoiseModel
+from .solution import CalibrationSolution, _assemble_solution, _solve_problem
+
+CHUNK_SIZE = 128
+"""Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
 
 
 def calibrate_lm(
@@ -53,121 +76,204 @@ def calibrate_lm(
     unidentifiable directions of the nominal linearisation (rank cut-off ``rcond``) are left
     at zero, as the paper solver's minimum-norm steps do to first order.
     """
-    q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
-    dtype = measured.dtype
-    poses = module_poses(arm, q)
-    G = whitening(measured, noise)
-    frames0 = jnp.asarray(arm.frames, dtype)
-    k_frames = len(arm.frame_names)
-    n = arm.n_params
-    nan = jnp.asarray(jnp.nan, dtype)
-    finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
-    # X = basis @ u: whitened coordinates of the identifiable subspace (module docstring).
-    basis = _identifiable_basis(frames0, poses, measured, G, rcond)
+    solve = _lm_solver(
+        max_iterations=max_iterations, rtol=rtol, atol=atol, rcond=rcond, weighted=noise is not None
+    )
+    return _solve_problem(
+        solve, arm, q, measured, noise, allow_underdetermined=allow_underdetermined, throw=throw
+    )
 
-    def frames_of(X):
-        return lie.se3_exp(X.reshape(k_frames, 6)) @ frames0
 
-    def fn(u, _):
-        tool, after = chain(frames_of(basis @ u), poses)
-        Y, _ = _stack(tool, after, measured, G)
-        return Y, None  # optimistix' internal step API expects (out, aux)
+def residual_jacobian(
+    X: Array, frames0: Array, poses: Array, measured: Array, noise: NoiseModel | None = None
+) -> tuple[Array, tuple[Array, Array], Array]:
+    """The LM residual at ``X``, the deviation metrics of its model and its Jacobian.
 
+    With ``T(X) = E_0 F_0 M_1 E_1 F_1 ... M_K E_K F_K``, ``E_j = exp(hat(X_j))`` and
+    ``Delta = T_meas T(X)^-1``, the residual is ``r = log(Delta)^v`` (Eq. 7) and, differentiating
+    ``E_j`` on the left (``d exp(xi) = hat(J_l(xi) d xi) exp(xi)``, ``J_l`` the left Jacobian of
+    SE(3)) and ``log`` on the right,
+
+        dr = -J_r^-1(r) [I, Ad(P_1), ..., Ad(P_K)] diag(J_l(X_0), ..., J_l(X_K)) dX,
+
+    where the middle factor is the paper's ``D`` (Eq. 8) at the frames ``F_j(X)`` and
+    ``J_r^-1(r) = d log(Delta exp(hat(e)))^v / de = J_l^-1(-r)`` at ``e = 0``, both in closed form
+    (:func:`.kernels.se3_left_jacobian`); the test suite checks the product against
+    ``jax.jacfwd`` of the residual.
+
+    Args:
+        X: ``(6 (K+1),)`` error twists.
+        frames0: ``(K+1, 4, 4)`` nominal frames.
+        poses: ``(K, 3, 4, m)`` module poses (pose-last, :mod:`.kernels`).
+        measured: ``(3, 4, m)`` measured tool poses (pose-last).
+        noise: whitening, or ``None``.
+
+    Returns:
+        ``(r (6m,), (delta_p, delta_R), J (6m, 6 (K+1)))``; ``r`` component-major
+        (``r.reshape(6, m)[:, k]`` is pose ``k``), as the rows of ``J``.
+    """
+    k1 = frames0.shape[0]
+    n = 6 * k1
+    xi = X.reshape(k1, 6)
+    frames = lie.se3_exp(xi) @ frames0
+    lin = kernels.linearise(frames, poses, measured)  # unwhitened: D = [I, Ad(P_i)] at F(X)
+    m = measured.shape[-1]
+    r = lin.Y.reshape(6, m)  # log(Delta)^v, Delta = T_meas T(X)^-1
+    jr_inv = kernels.se3_left_jacobian_inverse(-r)  # J_r^-1(r) = J_l^-1(-r): (6, 6, m)
+    jl = jnp.moveaxis(kernels.se3_left_jacobian(xi.T), -1, 0)  # (K+1, 6, 6)
+    DT = lin.DT.reshape(k1, 6, 6, m)  # (frame, column, row, pose): D_k^T
+    # The small contractions as explicit sums of 6 products over the pose axis (XLA turns
+    # einsums with the pose axis as a batch axis into transposes and tiny matrix products).
+    # (J_r^-1 D_k)^T = D_k^T J_r^-1^T: contract the row axis b.
+    A = _sum6(lambda b: DT[:, :, b, None, :] * jr_inv[None, None, :, b, :])
+    # diag(J_l)^T on the left: column c of frame j is sum_d J_l[j][d, c] (column d).
+    A = _sum6(lambda d: jl[:, d, :, None, None] * A[:, d, None, :, :])
+    J = -jnp.transpose(A.reshape(n, 6, m), (1, 2, 0))  # (row, pose, column)
+    if noise is not None:
+        r = kernels.whiten(r, measured, noise)
+        J = kernels.whiten(jnp.moveaxis(J, 2, 1), measured, noise)  # (row, column, pose)
+        J = jnp.moveaxis(J, 1, 2)
+    return r.reshape(6 * m), (lin.delta_p, lin.delta_R), J.reshape(6 * m, n)
+
+
+def _sum6(term: Callable[[int], Array]) -> Array:
+    """``term(0) + ... + term(5)``."""
+    total = term(0)
+    for i in range(1, 6):
+        total = total + term(i)
+    return total
+
+
+def _residual_fn(frames0, poses, measured, noise, basis):
+    """``u -> (r, (delta_p, delta_R))`` at ``X = basis @ u`` for optimistix, with the analytic
+    Jacobian ``J(X) basis`` (:func:`residual_jacobian`) as its JVP."""
+
+    @jax.custom_jvp
+    def residual(u):
+        r, aux, _ = residual_jacobian(basis @ u, frames0, poses, measured, noise)
+        return r, aux
+
+    @residual.defjvp
+    def _jvp(primals, tangents):
+        (u,), (du,) = primals, tangents
+        r, aux, J = residual_jacobian(basis @ u, frames0, poses, measured, noise)
+        zero = jax.tree.map(jnp.zeros_like, aux)
+        return (r, aux), ((J @ basis) @ du, zero)
+
+    return lambda u, _: residual(u)
+
+
+def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
+    """The per-trial LM solver for one static configuration, chunked under ``vmap``."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    y0 = jnp.zeros(basis.shape[-1], dtype)
-    f_struct = jax.eval_shape(lambda: fn(y0, None)[0])
     options: dict = {}
     tags: frozenset = frozenset()
-    state0 = solver.init(fn, y0, None, options, f_struct, None, tags)
-    # As optimistix' own loop does: carry only the array part of the solver state.
-    dyn_state0, static_state = eqx.partition(state0, eqx.is_array)
 
-    def metrics(X):
-        tool, _ = chain(frames_of(X), poses)
-        return deviation_metrics(measured, tool)
+    def setup(frames0, poses, measured, *noise_std):
+        noise = NoiseModel(*noise_std) if weighted else None
+        P = jnp.moveaxis(poses[..., :3, :], 0, -1)  # (K, 3, 4, m)
+        T = kernels.pose_stack(measured)
+        return P, T, noise
 
-    def cond(carry):
-        k, _, _, _, _, _, done, ok = carry
+    def optx_state(fn, y0):
+        f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, None))
+        state0 = solver.init(fn, y0, None, options, f_struct, aux_struct, tags)
+        # As optimistix' own loop does: carry only the array part of the solver state.
+        return eqx.partition(state0, eqx.is_array)
+
+    def init(frames0, poses, measured, *noise_std):
+        dtype = measured.dtype
+        P, T, noise = setup(frames0, poses, measured, *noise_std)
+        # X = basis @ u: whitened coordinates of the identifiable subspace (module docstring).
+        basis = _identifiable_basis(kernels.linearise(frames0, P, T, noise), rcond)
+        fn = _residual_fn(frames0, P, T, noise, basis)
+        u0 = jnp.zeros(basis.shape[-1], dtype)
+        nan = jnp.asarray(jnp.nan, dtype)
+        finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
+        return (
+            jnp.asarray(0),
+            u0,
+            basis,
+            optx_state(fn, u0)[0],
+            jnp.full((max_iterations,), nan),
+            jnp.full((max_iterations + 1,), nan),
+            jnp.full((max_iterations + 1,), nan),
+            jnp.asarray(False),
+            finite_in,
+        )
+
+    def running(carry):
+        k, *_, done, ok = carry
         return (k < max_iterations) & ~done & ok
 
-    def body(carry):
-        k, u, dyn_state, steps, dps, dRs, _, _ = carry
-        dp, dR = metrics(basis @ u)
-        state = eqx.combine(static_state, dyn_state)
-        u_new, state, _ = solver.step(fn, u, None, options, state, tags)
+    def step(carry, *args):
+        k, u, basis, dyn_state, steps, dps, dRs, _, _ = carry
+        fn = _residual_fn(args[0], *setup(*args), basis)
+        state = eqx.combine(optx_state(fn, u)[1], dyn_state)
+        # The aux that optimistix returns belongs to its input u: Eqs. 20-21 at X_k.
+        u_new, state, (dp, dR) = solver.step(fn, u, None, options, state, tags)
         done, _ = solver.terminate(fn, u, None, options, state, tags)
         done = done | _converged(state.y_eval - u_new, u_new, state.f_info, rtol, atol)
         dyn_state, _ = eqx.partition(state, eqx.is_array)
-        step = jnp.linalg.norm(basis @ (u_new - u))
-        ok = jnp.all(jnp.isfinite(u_new))
         return (
             k + 1,
             u_new,
+            basis,
             dyn_state,
-            steps.at[k].set(step),
+            steps.at[k].set(jnp.linalg.norm(basis @ (u_new - u))),
             dps.at[k].set(dp),
             dRs.at[k].set(dR),
             done,
-            ok,
+            jnp.all(jnp.isfinite(u_new)),
         )
 
-    init = (
-        jnp.asarray(0),
-        y0,
-        dyn_state0,
-        jnp.full((max_iterations,), nan),
-        jnp.full((max_iterations + 1,), nan),
-        jnp.full((max_iterations + 1,), nan),
-        jnp.asarray(False),
-        finite_in,
-    )
-    k, u, _, steps, dps, dRs, done, ok = jax.lax.while_loop(cond, body, init)
-    frames = frames_of(basis @ u)
-    tool, after = chain(frames, poses)
-    Y, D = _stack(tool, after, measured, G)
-    dp, dR = deviation_metrics(measured, tool)
-    _, rank, s = min_norm_lstsq(D, Y, rcond)
-    dps = dps.at[k].set(dp)
-    dRs = dRs.at[k].set(dR)
-    ok = ok & jnp.isfinite(dp) & jnp.isfinite(dR)
-    result = RESULTS.where(
-        ok,
-        RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached),
-        RESULTS.nonfinite,
-    )
-    sol = CalibrationSolution(
-        frames=frames,
-        errors=lie.se3_log(frames @ lie.inverse(frames0)),
-        result=result,
-        iterations=k,
-        step_norm=steps,
-        delta_p=dps,
-        delta_R=dRs,
-        rank=rank,
-        singular_values=jnp.pad(s, (0, max(0, n - s.shape[-1]))),
-        cost=jnp.sum(Y * Y),
-        solver="lm",
-    )
-    if throw:
-        sol = result.error_if(sol, result != RESULTS.successful)
-    return sol
+    def result(carry):
+        k, u, basis, _, steps, dps, dRs, done, ok = carry
+        return k, basis @ u, steps, dps, dRs, done, ok
+
+    def finish(res, frames0, poses, measured, *noise_std):
+        k, X, steps, dps, dRs, done, ok = res
+        P, T, noise = setup(frames0, poses, measured, *noise_std)
+        frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
+        lin = kernels.linearise(frames, P, T, noise)
+        s = jnp.linalg.svd(lin.DT, compute_uv=False)
+        rc = default_rcond(measured.dtype) if rcond is None else rcond
+        return _assemble_solution(
+            frames,
+            frames0,
+            ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
+            done=done,
+            iterations=k,
+            step_norm=steps,
+            delta_p=dps.at[k].set(lin.delta_p),
+            delta_R=dRs.at[k].set(lin.delta_R),
+            rank=jnp.sum(s > rc * s[..., :1], axis=-1),
+            singular_values=s,
+            cost=jnp.sum(lin.Y * lin.Y),
+            solver="lm",
+        )
+
+    def one(*args):
+        carry = jax.lax.while_loop(running, lambda c: step(c, *args), init(*args))
+        return finish(result(carry), *args)
+
+    return chunked_vmap(one, CHUNK_SIZE)
 
 
-def _identifiable_basis(frames, poses, measured, G, rcond):
+def _identifiable_basis(lin: kernels.Linearisation, rcond: float | None) -> Array:
     """``(n, r)`` map ``X = B u`` onto the identifiable subspace at the nominal model.
 
-    ``B = V S^+`` from the thin SVD of the (whitened) stacked Jacobian ``D~`` (Eq. 9): the
-    columns are the right singular vectors divided by their singular values, and zero for
-    singular values below ``rcond * s_max``, so that ``D~ B`` has orthonormal (or zero) columns.
+    ``B = V S^+`` from the thin SVD of the (whitened) stacked Jacobian ``D~ = U S V^T`` (Eq. 9,
+    held transposed by ``lin``, so that ``V`` is the left factor of ``D~^T``): the columns are
+    the right singular vectors divided by their singular values, and zero for singular values
+    below ``rcond * s_max``, so that ``D~ B`` has orthonormal (or zero) columns.
     ``r = min(6 m, n)``.
     """
-    tool, after = chain(frames, poses)
-    _, D = _stack(tool, after, measured, G)
-    _, s, Vt = jnp.linalg.svd(D, full_matrices=False)
-    rcond = default_rcond(D.dtype) if rcond is None else rcond
+    V, s, _ = jnp.linalg.svd(lin.DT, full_matrices=False)
+    rcond = default_rcond(lin.DT.dtype) if rcond is None else rcond
     keep = s > rcond * s[..., :1]
     scale = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
-    return jnp.swapaxes(Vt, -1, -2) * scale
+    return V * scale
 
 
 def _converged(proposal, y, f_info, rtol, atol):

@@ -73,7 +73,7 @@ from ..arm import Arm, chain, module_poses
 from .gauss_newton import calibrate_paper
 from .levenberg_marquardt import calibrate_lm
 from .model import NoiseModel, deviation_metrics, residual_twist, whitening
-from .solution import RESULTS, CalibrationSolution
+from .solution import RESULTS, CalibrationSolution, _assemble_solution
 from .validation import check_problem
 
 HUBER_C = 1.345
@@ -481,15 +481,12 @@ def calibrate_robust(
     )
     done = done | (max_rounds == 0)  # no reweighting asked for: the least-squares fit is it
     ok = ok & jnp.all(jnp.isfinite(frames)) & jnp.all(jnp.isfinite(z))
-    # (type: ignore: equinox's stubs type the items as str, as in the solvers)
-    settled = done & inner_ok
-    status = RESULTS.where(settled, RESULTS.successful, RESULTS.max_iterations_reached)  # type: ignore[arg-type]
-    result = RESULTS.where(ok, status, RESULTS.nonfinite)  # type: ignore[arg-type]
     name = ("lm" if solver == "lm" else "weighted") + "+" + loss.name
-    sol = CalibrationSolution(
-        frames=frames,
-        errors=lie.se3_log(frames @ lie.inverse(nominal)),
-        result=result,
+    sol = _assemble_solution(
+        frames,
+        nominal,
+        ok=ok,
+        done=done & inner_ok,
         iterations=k,
         step_norm=steps,
         delta_p=dps,
@@ -512,5 +509,5 @@ def calibrate_robust(
         scale_source="MAD" if sigma is None else "noise model",
     )
     if throw:
-        out = result.error_if(out, result != RESULTS.successful)
+        out = sol.result.error_if(out, sol.result != RESULTS.successful)
     return out

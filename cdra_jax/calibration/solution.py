@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.typing import ArrayLike
 
-from ..arm import Arm
+from .. import lie
+from ..arm import Arm, module_poses
+from .model import NoiseModel
+from .validation import check_problem
 
 
 class RESULTS(eqx.Enumeration):
@@ -83,3 +89,74 @@ def result_messages(result: RESULTS) -> np.ndarray:
     msgs = [m or "successful" for m in RESULTS._index_to_message]
     idx = np.asarray(result._value)
     return np.vectorize(lambda i: msgs[int(i)], otypes=[object])(idx)
+
+
+def _solve_problem(
+    solve: Callable[..., CalibrationSolution],
+    arm: Arm,
+    q: ArrayLike,
+    measured: ArrayLike,
+    noise: NoiseModel | None,
+    *,
+    allow_underdetermined: bool,
+    throw: bool,
+) -> CalibrationSolution:
+    """Check a calibration problem, run a per-trial solver on it and apply ``throw``.
+
+    ``solve(frames0 (K+1, 4, 4), poses (m, K, 4, 4), measured (m, 4, 4)[, s_pos, s_rot])`` is
+    one of the solvers' compiled per-trial functions; the noise stds (scalars, or ``(m,)`` per
+    pose) are passed only when a noise model is given. Shapes are checked by
+    :func:`.validation.check_problem` (``ValueError`` at trace time).
+    """
+    q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
+    dtype = measured.dtype
+    args: tuple[Array, ...] = (jnp.asarray(arm.frames, dtype), module_poses(arm, q), measured)
+    if noise is not None:
+        args += (jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype))
+    sol = solve(*args)
+    if throw:
+        sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
+    return sol
+
+
+def _assemble_solution(
+    frames: Array,
+    nominal: Array,
+    *,
+    ok: Array,
+    done: Array,
+    iterations: Array,
+    step_norm: Array,
+    delta_p: Array,
+    delta_R: Array,
+    rank: Array,
+    singular_values: Array,
+    cost: Array,
+    solver: str,
+) -> CalibrationSolution:
+    """The :class:`CalibrationSolution` of a finished (unbatched) solve.
+
+    The result code is ``nonfinite`` unless ``ok``, else ``successful`` when ``done`` and
+    ``max_iterations_reached`` otherwise; the errors are ``log(F^c F^-1)`` against the
+    ``nominal`` frames ``(K+1, 4, 4)`` (Eqs. 15-18); the singular values are padded with zeros
+    to ``6 (K+1)`` (fewer than that when ``6 m < n``).
+    """
+    result = RESULTS.where(
+        ok,
+        RESULTS.where(done, RESULTS.successful, RESULTS.max_iterations_reached),  # type: ignore[arg-type]
+        RESULTS.nonfinite,  # type: ignore[arg-type]
+    )
+    n = 6 * nominal.shape[-3]
+    return CalibrationSolution(
+        frames=frames,
+        errors=lie.se3_log(frames @ lie.inverse(nominal)),
+        result=result,
+        iterations=iterations,
+        step_norm=step_norm,
+        delta_p=delta_p,
+        delta_R=delta_R,
+        rank=rank,
+        singular_values=jnp.pad(singular_values, (0, max(0, n - singular_values.shape[-1]))),
+        cost=cost,
+        solver=solver,
+    )

@@ -1,0 +1,352 @@
+"""The calibration model (Eqs. 7-9, 20-21) in a memory layout that vectorises over trials.
+
+The solvers evaluate Eq. 9 a few times per trial and are run under ``jax.vmap`` over many
+trials. Under ``vmap`` the batch axis leads, so the textbook layout of a pose stack,
+``(m, 4, 4)``, becomes ``(trials, m, 4, 4)``: every elementwise operation then runs over rows of
+3, 4 or 6 numbers and every component access (``R[..., 0, 1]``) is a strided gather, which the
+CPU cannot vectorise. This module keeps the pose axis ``m`` *last*, ``(3, 4, m)`` (the top three
+rows of each homogeneous matrix), and writes the few Lie-group operations the model needs as
+explicit component arithmetic, so that every operation runs over contiguous rows of ``m`` poses.
+The maths is that of :mod:`cdra_jax.lie`, :func:`cdra_jax.arm.chain`,
+:func:`.model.residual_twist`, :func:`.model.calibration_jacobian`, :func:`.model.whitening` and
+:func:`.model.deviation_metrics`; the tests check every function here against those to rounding.
+
+Layout: a "pose stack" is ``(3, 4, m)``: ``S[:, :3]`` the rotations ``(3, 3, m)``, ``S[:, 3]``
+the translations ``(3, m)`` in mm. The module poses of a trial are ``(K, 3, 4, m)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+from .. import lie
+from .model import NoiseModel
+
+
+class Linearisation(NamedTuple):
+    """The stacked system of Eq. 9 at one model, for one trial.
+
+    The rows of ``Y~`` and ``D~`` are ordered component-major here (all poses' ``vx``, then all
+    poses' ``vy``, ...), a row permutation of Eq. 9's pose-by-pose stacking that changes neither
+    ``D~^T D~``, ``D~^T Y~``, the singular values nor the cost, and ``D~`` is held transposed,
+    which is the layout the products ``D~^T D~`` and ``D~^T Y~`` want.
+
+    Attributes:
+        Y: ``(6m,)`` residual twists ``log(T_meas T_model^-1)^v`` (Eq. 7), whitened when a
+            noise model is given; ``Y.reshape(6, m)[:, k]`` is pose ``k``'s ``(v, w)``.
+        DT: ``(6(K+1), 6m)`` the calibration Jacobian (Eqs. 8-9) transposed, whitened likewise;
+            ``DT.reshape(n, 6, m)[:, :, k]`` is ``D_k^T``.
+        delta_p: Eq. 20 (mm) of the model against the measurements.
+        delta_R: Eq. 21 (rad).
+    """
+
+    Y: Array
+    DT: Array
+    delta_p: Array
+    delta_R: Array
+
+    def stacked(self) -> tuple[Array, Array]:
+        """``(Y~ (6m,), D~ (6m, n))`` in Eq. 9's pose-by-pose order (as ``stacked_system``)."""
+        n = self.DT.shape[0]
+        m = self.Y.shape[0] // 6
+        Y = self.Y.reshape(6, m).T.reshape(6 * m)
+        D = jnp.transpose(self.DT.reshape(n, 6, m), (2, 1, 0)).reshape(6 * m, n)
+        return Y, D
+
+    def normal_equations(self) -> tuple[Array, Array]:
+        """``(D~^T D~ (n, n), D~^T Y~ (n,))`` of Eq. 10."""
+        return self.DT @ self.DT.T, self.DT @ self.Y
+
+
+def pose_stack(T: ArrayLike) -> Array:
+    """``(..., m, 4, 4)`` homogeneous poses to the pose-last layout ``(..., 3, 4, m)``."""
+    T = jnp.asarray(T)
+    return jnp.moveaxis(T[..., :3, :], -3, -1)
+
+
+def compose(A: Array, B: Array) -> Array:
+    """Product of two pose stacks ``(3, 4, ...)`` (broadcasting over the trailing axes)."""
+    RA, pA = A[:, :3], A[:, 3]
+    RB, pB = B[:, :3], B[:, 3]
+    R = RA[:, 0, None] * RB[None, 0] + RA[:, 1, None] * RB[None, 1] + RA[:, 2, None] * RB[None, 2]
+    p = RA[:, 0] * pB[0] + RA[:, 1] * pB[1] + RA[:, 2] * pB[2] + pA
+    return jnp.concatenate([R, p[:, None]], axis=1)
+
+
+def chain(frames: Array, poses: Array) -> tuple[Array, Array]:
+    """Eq. 1 on pose stacks: :func:`cdra_jax.arm.chain` in the pose-last layout.
+
+    Args:
+        frames: ``(K+1, 4, 4)`` fixed transforms (shared by the poses).
+        poses: ``(K, 3, 4, m)`` module poses.
+
+    Returns:
+        ``(tool (3, 4, m), after (K, 3, 4, m))``.
+    """
+    frames = jnp.asarray(frames)[:, :3, :, None].astype(poses.dtype)
+    k = poses.shape[0]
+    T = jnp.broadcast_to(frames[0], poses.shape[1:])
+    after = []
+    for i in range(k):
+        T = compose(T, poses[i])
+        after.append(T)
+        T = compose(T, frames[i + 1])
+    return T, jnp.stack(after)
+
+
+def _cross(a, b):
+    """Cross product of two 3-sequences of equally shaped arrays (the leading index)."""
+    return (
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    )
+
+
+def so3_log(R: Array) -> Array:
+    """:func:`cdra_jax.lie.so3_log` for rotations ``(3, 3, ...)``: ``-> (3, ...)``.
+
+    The same algorithm, component by component: Shepperd's quaternion (largest-pivot branch
+    chosen before the square root, accurate near pi) and the quaternion logarithm with its
+    small-angle series.
+    """
+    m00, m01, m02 = R[0, 0], R[0, 1], R[0, 2]
+    m10, m11, m12 = R[1, 0], R[1, 1], R[1, 2]
+    m20, m21, m22 = R[2, 0], R[2, 1], R[2, 2]
+    t0 = 1 + m00 - m11 - m22
+    t1 = 1 - m00 + m11 - m22
+    t2 = 1 - m00 - m11 + m22
+    t3 = 1 + m00 + m11 + m22
+    c0, c1, c2 = m22 < 0, m00 > m11, m00 < -m11
+
+    def pick(a, b, c, d):
+        return jnp.where(c0, jnp.where(c1, a, b), jnp.where(c2, c, d))
+
+    t = pick(t0, t1, t2, t3)
+    qw = pick(m21 - m12, m02 - m20, m10 - m01, t3)
+    qx = pick(t0, m10 + m01, m02 + m20, m21 - m12)
+    qy = pick(m10 + m01, t1, m21 + m12, m02 - m20)
+    qz = pick(m02 + m20, m21 + m12, t2, m10 - m01)
+    # Quaternion (qw, qx, qy, qz) * 0.5 / sqrt(t), sign flipped to qw >= 0.
+    s = 0.5 / jnp.sqrt(t)
+    s = jnp.where(qw < 0, -s, s)
+    qw, qx, qy, qz = qw * s, qx * s, qy * s, qz * s
+    n_sq = qx * qx + qy * qy + qz * qz
+    small = n_sq < 1e-12
+    safe_n = jnp.sqrt(jnp.where(small, jnp.ones_like(n_sq), n_sq))
+    safe_w = jnp.where(small, qw, jnp.ones_like(qw))
+    exact = 2.0 * jnp.arctan2(safe_n, qw) / safe_n
+    taylor = 2.0 / safe_w * (1.0 - n_sq / (3.0 * safe_w * safe_w))
+    f = jnp.where(small, taylor, exact)
+    return jnp.stack([f * qx, f * qy, f * qz])
+
+
+def se3_log(T: Array) -> Array:
+    """:func:`cdra_jax.lie.se3_log` for pose stacks ``(3, 4, ...)``: ``-> (6, ...)``, ``(v, w)``.
+
+    ``v = A^-1 p`` with ``A^-1 = I - hat(w)/2 + c hat(w)^2`` as in
+    :func:`cdra_jax.lie.so3_left_jacobian_inverse`, applied as two cross products.
+    """
+    w = so3_log(T[:, :3])
+    p = T[:, 3]
+    x = jnp.sum(w * w, axis=0)
+    small = x < lie._SMALL_ANGLE_SQ
+    safe_x = jnp.where(small, jnp.ones_like(x), x)
+    t = jnp.sqrt(safe_x)
+    exact = (1.0 - 0.5 * t * jnp.sin(t) / (2.0 * jnp.sin(0.5 * t) ** 2)) / safe_x
+    taylor = 1.0 / 12.0 + x / 720.0 + x * x / 30240.0 + x * x * x / 1209600.0
+    c = jnp.where(small, taylor, exact)
+    wxp = _cross(w, p)
+    wwxp = _cross(w, wxp)
+    v = jnp.stack([p[i] - 0.5 * wxp[i] + c * wwxp[i] for i in range(3)])
+    return jnp.concatenate([v, w])
+
+
+def _matmul3(A, B):
+    """Product of 3x3 matrices stored ``(3, 3, ...)`` (broadcasting over the trailing axes)."""
+    return A[:, 0, None] * B[None, 0] + A[:, 1, None] * B[None, 1] + A[:, 2, None] * B[None, 2]
+
+
+def _hat(w):
+    """``hat`` of vectors ``(3, ...) -> (3, 3, ...)``."""
+    z = jnp.zeros_like(w[0])
+    return jnp.stack(
+        [jnp.stack([z, -w[2], w[1]]), jnp.stack([w[2], z, -w[0]]), jnp.stack([-w[1], w[0], z])]
+    )
+
+
+def _series_or_exact(x, series, exact):
+    """``series(x)`` below the small-angle threshold of :mod:`cdra_jax.lie`, else ``exact``."""
+    small = x < lie._SMALL_ANGLE_SQ
+    safe = jnp.where(small, jnp.ones_like(x), x)
+    return jnp.where(small, series(x), exact(safe, jnp.sqrt(safe)))
+
+
+def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
+    """Blocks of the left Jacobian of SE(3), ``J_l(xi) = [[J, Q], [0, J]]``, for ``xi (6, ...)``.
+
+    ``exp(hat(xi + d)) ~= exp(hat(J_l(xi) d)) exp(hat(xi))`` with twists ``(v, w)``: ``J`` is the
+    left Jacobian of SO(3) (``A`` of Eq. 26, :func:`cdra_jax.lie.so3_left_jacobian`) and ``Q``
+    the coupling block (Barfoot, *State Estimation for Robotics*, Eq. 7.86):
+
+        Q = 1/2 V + c1 (W V + V W + W V W) + c2 (W^2 V + V W^2 - 3 W V W)
+            + c3 (W V W^2 + W^2 V W),
+
+    ``V = hat(v)``, ``W = hat(w)``, ``t = |w|``, ``c1 = (t - sin t) / t^3``,
+    ``c2 = (t^2/2 + cos t - 1) / t^4``, ``c3 = (2t - 3 sin t + t cos t) / (2 t^5)``, with their
+    Taylor series below the small-angle threshold.
+
+    Returns:
+        ``(J, Q, J^-1)``, each ``(3, 3, ...)``.
+    """
+    v, w = xi[:3], xi[3:]
+    x = jnp.sum(w * w, axis=0)
+    c1 = _series_or_exact(
+        x,
+        lambda x: (1 - x / 20 * (1 - x / 42 * (1 - x / 72 * (1 - x / 110)))) / 6,
+        lambda x, t: (t - jnp.sin(t)) / (x * t),
+    )
+    c2 = _series_or_exact(
+        x,
+        lambda x: (1 - x / 30 * (1 - x / 56 * (1 - x / 90 * (1 - x / 132)))) / 24,
+        lambda x, t: (0.5 * x + jnp.cos(t) - 1) / (x * x),
+    )
+    c3 = _series_or_exact(
+        x,
+        lambda x: 1 / 120 - x / 2520 + x * x / 120960 - x * x * x / 9979200,
+        lambda x, t: (2 * t - 3 * jnp.sin(t) + t * jnp.cos(t)) / (2 * x * x * t),
+    )
+    b = _series_or_exact(
+        x,
+        lambda x: 0.5 * (1 - x / 12 * (1 - x / 30 * (1 - x / 56 * (1 - x / 90)))),
+        lambda x, t: (1 - jnp.cos(t)) / x,
+    )
+    ci = _series_or_exact(
+        x,
+        lambda x: 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
+        lambda x, t: (1 - 0.5 * t * jnp.sin(t) / (2 * jnp.sin(0.5 * t) ** 2)) / x,
+    )
+    W, V = _hat(w), _hat(v)
+    W2 = _matmul3(W, W)
+    WV, VW = _matmul3(W, V), _matmul3(V, W)
+    WVW = _matmul3(WV, W)
+    eye = jnp.eye(3, dtype=xi.dtype).reshape((3, 3) + (1,) * (xi.ndim - 1))
+    J = eye + b * W + c1 * W2
+    J_inv = eye - 0.5 * W + ci * W2
+    Q = (
+        0.5 * V
+        + c1 * (WV + VW + WVW)
+        + c2 * (_matmul3(W, WV) + _matmul3(VW, W) - 3 * WVW)
+        + c3 * (_matmul3(WVW, W) + _matmul3(W, WVW))
+    )
+    return J, Q, J_inv
+
+
+def se3_left_jacobian(xi: Array) -> Array:
+    """``J_l(xi) = [[J, Q], [0, J]]`` (see :func:`se3_left_jacobian_blocks`): ``(6, 6, ...)``."""
+    J, Q, _ = se3_left_jacobian_blocks(xi)
+    return jnp.concatenate(
+        [jnp.concatenate([J, Q], axis=1), jnp.concatenate([jnp.zeros_like(J), J], axis=1)]
+    )
+
+
+def se3_left_jacobian_inverse(xi: Array) -> Array:
+    """``J_l(xi)^-1 = [[J^-1, -J^-1 Q J^-1], [0, J^-1]]``: ``(6, ...) -> (6, 6, ...)``."""
+    _, Q, Ji = se3_left_jacobian_blocks(xi)
+    top = jnp.concatenate([Ji, -_matmul3(_matmul3(Ji, Q), Ji)], axis=1)
+    return jnp.concatenate([top, jnp.concatenate([jnp.zeros_like(Ji), Ji], axis=1)])
+
+
+def residual(measured: Array, tool: Array) -> Array:
+    """Eq. 7, ``log(T_meas T_model^-1)^v``, for pose stacks: ``(3, 4, m) x2 -> (6, m)``."""
+    Rm, pm = measured[:, :3], measured[:, 3]
+    Rt, pt = tool[:, :3], tool[:, 3]
+    # T_meas T_model^-1 = [R_m R_t^T, p_m - R_m R_t^T p_t]
+    R = Rm[:, None, 0] * Rt[None, :, 0] + Rm[:, None, 1] * Rt[None, :, 1]
+    R = R + Rm[:, None, 2] * Rt[None, :, 2]
+    p = pm - (R[:, 0] * pt[0] + R[:, 1] * pt[1] + R[:, 2] * pt[2])
+    return se3_log(jnp.concatenate([R, p[:, None]], axis=1))
+
+
+def adjoint_transpose(T: Array) -> Array:
+    """``Ad_T^T = [[R^T, 0], [(hat(p) R)^T, R^T]]`` (Eq. 25) for pose stacks: ``-> (6, 6, ...)``."""
+    R, p = T[:, :3], T[:, 3]
+    Rt = jnp.swapaxes(R, 0, 1)
+    Ht = jnp.swapaxes(jnp.stack(_cross(p[:, None], R)), 0, 1)  # hat(p) R: column j = p x R[:, j]
+    return jnp.concatenate(
+        [jnp.concatenate([Rt, jnp.zeros_like(Rt)], axis=1), jnp.concatenate([Ht, Rt], axis=1)]
+    )
+
+
+def whiten(A: Array, measured: Array, noise: NoiseModel) -> Array:
+    """Apply each pose's whitening ``G`` (:func:`.model.whitening`) to the leading twist axis.
+
+    Args:
+        A: ``(6, ..., m)``: for each pose ``k`` (last axis) twists ``(v, w)`` along the first
+            axis (a residual, or the rows of a Jacobian).
+        measured: ``(3, 4, m)`` measured tool poses (their positions ``p`` are the lever arms).
+        noise: the noise model.
+
+    Returns:
+        ``G A``: ``((v - p x w) / s_pos, w / s_rot)``.
+    """
+    dtype = A.dtype
+    sp = jnp.asarray(noise.position_mm, dtype)
+    sr = jnp.asarray(noise.rotation_rad, dtype)
+    p = measured[:, 3].reshape((3,) + (1,) * (A.ndim - 2) + measured.shape[-1:])
+    v, w = A[:3], A[3:]
+    return jnp.concatenate([(v - jnp.stack(_cross(p, w))) / sp, w / sr])
+
+
+def linearise(
+    frames: ArrayLike,
+    poses: Array,
+    measured: Array,
+    noise: NoiseModel | None = None,
+) -> Linearisation:
+    """``Y~``, ``D~`` (Eq. 9) and the deviation metrics (Eqs. 20-21) of one trial.
+
+    Args:
+        frames: ``(K+1, 4, 4)`` current fixed transforms.
+        poses: ``(K, 3, 4, m)`` module poses (:func:`pose_stack` of
+            :func:`cdra_jax.arm.module_poses`), constant during a calibration.
+        measured: ``(3, 4, m)`` measured tool poses (:func:`pose_stack`).
+        noise: whitening as :func:`.model.whitening`, or ``None`` (the paper's form).
+
+    Returns:
+        A :class:`Linearisation`; :meth:`Linearisation.stacked` equals
+        :func:`.model.stacked_system`.
+
+    Eq. 21's ``|log(R_a^-1 R_c)|`` is the rotation angle of ``R_a R_c^-1`` (a conjugate of
+    its inverse), i.e. the norm of the rotational part of Eq. 7's residual, so the metric
+    reuses that logarithm instead of taking a second one.
+    """
+    dtype = poses.dtype
+    tool, after = chain(jnp.asarray(frames), poses)
+    Y = residual(measured, tool)  # (6, m)
+    dpos = measured[:, 3] - tool[:, 3]
+    m = dpos.shape[-1]
+    delta_p = jnp.sqrt(jnp.sum(dpos * dpos) / m)
+    delta_R = jnp.sqrt(jnp.sum(Y[3:] * Y[3:]) / m)
+    # D_k^T = [I; Ad(P_1)^T; ...; Ad(P_K)^T] as (K+1, 6, 6, m): (frame, column, row, pose)
+    eye = jnp.broadcast_to(jnp.eye(6, dtype=dtype)[:, :, None], (6, 6, m))
+    blocks = jnp.stack([eye] + [adjoint_transpose(a) for a in after])
+    if noise is not None:  # G Y and G D_k, G applied to the rows (v, w)
+        Y = whiten(Y, measured, noise)
+        blocks = jnp.moveaxis(whiten(jnp.moveaxis(blocks, 2, 0), measured, noise), 0, 2)
+    n = 6 * blocks.shape[0]
+    return Linearisation(
+        Y=Y.reshape(6 * m), DT=blocks.reshape(n, 6 * m), delta_p=delta_p, delta_R=delta_R
+    )
+
+
+def deviation_metrics(measured: Array, tool: Array) -> tuple[Array, Array]:
+    """Eqs. 20-21 for pose stacks ``(3, 4, m)`` (see :func:`linearise` for Eq. 21)."""
+    dpos = measured[:, 3] - tool[:, 3]
+    m = dpos.shape[-1]
+    w = residual(measured, tool)[3:]
+    return jnp.sqrt(jnp.sum(dpos * dpos) / m), jnp.sqrt(jnp.sum(w * w) / m)

@@ -1,0 +1,121 @@
+"""The hand-written baselines of benchmarks/throughput.py are correct (independent oracles).
+
+The NumPy maps of benchmarks/baselines.py (the paper's Eqs. 25-27 written per pose) against
+cdra_jax.lie, and the NumPy and SciPy calibrations against the JAX paper solver on the same
+simulated trials; then a small end-to-end run of the benchmark script (slow).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import pathlib
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+from cdra_jax import calibrate_paper, lie, simulation
+
+BENCH = pathlib.Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+baselines = _load("baselines")
+
+
+def test_numpy_maps_are_the_lie_maps():
+    rng = np.random.default_rng(0)
+    for scale in (1.0, 0.3, 1e-4, 1e-9, 0.0):
+        xi = rng.normal(size=6) * [50, 50, 50, scale, scale, scale]
+        T = baselines.se3_exp(xi)
+        np.testing.assert_allclose(T, lie.se3_exp(xi), rtol=1e-12, atol=1e-13)
+        np.testing.assert_allclose(baselines.se3_log(T), xi, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(baselines.adjoint(T), lie.adjoint(T), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(baselines.inverse(T) @ T, np.eye(4), atol=1e-12)
+        stack = np.stack([T, baselines.se3_exp(-xi)])
+        np.testing.assert_allclose(
+            baselines._se3_log_b(stack), lie.se3_log(stack), rtol=0, atol=1e-9
+        )
+
+
+@eqx.filter_jit
+def _trial(key, arm):
+    return simulation.simulate_trial(key, arm, 15)
+
+
+@eqx.filter_jit
+def _paper(arm, q, T):
+    return calibrate_paper(arm, q, T, throw=False)
+
+
+def test_baseline_calibrations_agree_with_the_paper_solver(cdra):
+    frames0 = np.asarray(cdra.frames)
+    kinds = baselines.arm_kinds(cdra)
+    for seed in (0, 1):
+        q, T, _, _, X = _trial(jax.random.PRNGKey(seed), cdra)
+        q, T = np.asarray(q), np.asarray(T)
+        ref = jax.tree.map(np.asarray, _paper(cdra, q, T))
+        poses = baselines.module_poses(kinds, q)
+        for solve in (
+            baselines.calibrate_numpy,
+            baselines.calibrate_numpy_vectorized,
+            baselines.calibrate_scipy,
+        ):
+            out = solve(frames0, poses, T)
+            assert out["converged"], solve.__name__
+            # Base and tool errors (the identifiable frames): preset and JAX solver.
+            np.testing.assert_allclose(
+                out["errors"][[0, 3]], np.asarray(X).reshape(4, 6)[[0, 3]], atol=1e-8
+            )
+            np.testing.assert_allclose(out["errors"][[0, 3]], ref.errors[[0, 3]], atol=1e-8)
+            if solve is not baselines.calibrate_scipy:  # the same iteration as the paper solver
+                assert out["iterations"] == int(ref.iterations)
+                assert out["rank"] == int(ref.rank) == 22
+                np.testing.assert_allclose(out["errors"], ref.errors, atol=1e-8)
+                np.testing.assert_allclose(
+                    out["delta_p"], ref.delta_p[: out["iterations"] + 1], rtol=1e-6, atol=1e-9
+                )
+
+
+@pytest.mark.slow
+def test_throughput_script_runs_and_reports_json(capsys):
+    throughput = _load("throughput")
+    args = ["--trials", "6", "--baseline-trials", "2", "--repeats", "1", "--json"]
+    throughput.main(args + ["--solvers", "paper", "numpy", "scipy"])  # LM: its own tests
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    report = json.loads(last)
+    for key in ("ratio_paper_vs_numpy", "ratio_scipy_vs_numpy", "compile_s_paper"):
+        assert np.isfinite(report[key]) and report[key] > 0, key
+    for name in ("paper", "numpy", "scipy"):
+        assert report[f"maxdiff_vs_preset_{name}"] < 1e-8, name
+        assert report[f"converged_{name}"] == 1.0, name
+
+
+@pytest.mark.slow
+def test_throughput_scaling_mode_generates_in_blocks_and_reports(cdra, capsys, monkeypatch):
+    """The block-wise problem generator (used for N = 10^6) gives the trials of one big batch,
+    and the scaling sweep reports a rate and a compile time per row."""
+    throughput = _load("throughput")
+    whole = throughput.make_problems(cdra, 5, 4, None, seed=3)
+    monkeypatch.setattr(throughput, "_GEN_BLOCK", 2)  # blocks of 2, the last one padded
+    blocks = throughput.make_problems(cdra, 5, 4, None, seed=3)
+    for a, b in zip(whole, blocks, strict=True):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    args = ["--scaling", "--solvers", "paper", "--repeats", "1", "--json"]
+    args += ["--scaling-trials", "3", "--scaling-poses", "5", "--scaling-n", "3"]
+    throughput.main(args)
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    (row_n,), (row_m,) = report["by_trials"], report["by_poses"]
+    assert (row_n["N"], row_m["m"]) == (3, 5)
+    for row in (row_n, row_m):
+        assert row["paper"] > 0 and row["paper_compile_s"] > 0 and row["paper_repeats"] == 1
+    assert len(report["machine"]["load_average"]) == 3

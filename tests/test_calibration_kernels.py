@@ -1,0 +1,216 @@
+"""The fast paths of the calibration solvers against the reference implementations.
+
+* :mod:`cdra_jax.calibration.kernels` (pose-last Eq. 7-9) against :mod:`cdra_jax.lie` and
+  :func:`cdra_jax.calibration.stacked_system`;
+* the normal-equation step (:func:`.linear.min_norm_solve_normal`) against the SVD
+  pseudo-inverse;
+* the analytic LM Jacobian against ``jax.jacfwd``;
+* the fast paper solver against its SVD-step variant, also where it has to redo trials.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdra_jax import lie, simulation
+from cdra_jax.arm import apply_frame_errors, module_poses, tool_pose
+from cdra_jax.calibration import (
+    NoiseModel,
+    calibrate_paper,
+    default_rcond,
+    deviation_metrics,
+    kernels,
+    residual_twist,
+    stacked_system,
+    whitening,
+)
+from cdra_jax.calibration.gauss_newton import RESOLVED_PIVOT
+from cdra_jax.calibration.levenberg_marquardt import residual_jacobian
+from cdra_jax.calibration.linear import (
+    min_norm_lstsq,
+    min_norm_solve_normal,
+    normal_cutoff,
+    pivoted_cholesky,
+)
+
+NOISE = NoiseModel(position_mm=0.05, rotation_rad=1e-3)
+
+
+@eqx.filter_jit
+def _problem(arm, seed, m=15, noise=None):
+    q, T, _, _, X = simulation.simulate_trial(jax.random.PRNGKey(seed), arm, m, noise=noise)
+    P = jnp.moveaxis(module_poses(arm, q)[..., :3, :], 0, -1)
+    return q, T, P, kernels.pose_stack(T), X
+
+
+@pytest.mark.parametrize("noise", [None, NOISE], ids=["paper", "weighted"])
+def test_linearise_is_the_stacked_system(cdra, noise):
+    q, T, P, Ts, X = _problem(cdra, 1, noise=NOISE)
+    frames = apply_frame_errors(cdra, 0.5 * X).frames  # not the nominal model
+    lin = eqx.filter_jit(kernels.linearise)(frames, P, Ts, noise)
+    Y, D = eqx.filter_jit(stacked_system)(cdra.with_frames(frames), q, T, noise)
+    Yk, Dk = lin.stacked()
+    scale = float(jnp.max(jnp.abs(D)))
+    np.testing.assert_allclose(Yk, Y, rtol=0, atol=1e-12 * max(1.0, float(jnp.max(jnp.abs(Y)))))
+    np.testing.assert_allclose(Dk, D, rtol=0, atol=1e-13 * scale)
+    N, g = lin.normal_equations()
+    np.testing.assert_allclose(N, D.T @ D, rtol=0, atol=1e-13 * scale**2)
+    np.testing.assert_allclose(g, D.T @ Y, rtol=1e-12, atol=1e-12 * scale)
+    # Eqs. 20-21 (the rotation metric from the residual's logarithm).
+    tool = eqx.filter_jit(tool_pose)(cdra.with_frames(frames), q)
+    dp, dR = deviation_metrics(T, tool)
+    np.testing.assert_allclose([lin.delta_p, lin.delta_R], [dp, dR], rtol=1e-12)
+
+
+def test_whiten_is_model_whitening(cdra):
+    _, T, _, Ts, _ = _problem(cdra, 2)
+    Y = jax.random.normal(jax.random.PRNGKey(0), (15, 6))
+    expected = jnp.einsum("kij,kj->ki", whitening(T, NOISE), Y)
+    np.testing.assert_allclose(kernels.whiten(Y.T, Ts, NOISE).T, expected, rtol=1e-13, atol=1e-13)
+
+
+def _rotations():
+    rng = np.random.default_rng(0)
+    w = rng.normal(size=(200, 3))
+    w = w / np.linalg.norm(w, axis=-1, keepdims=True)
+    angles = np.concatenate(
+        [rng.uniform(0, np.pi, 150), [0.0, 1e-12, 1e-7, 1e-3, 0.1, np.pi - 1e-9, np.pi]]
+        + [np.full(43, np.pi - 1e-6)]
+    )
+    return lie.so3_exp(jnp.asarray(w * angles[:, None]))
+
+
+def test_so3_log_is_lie_so3_log():
+    R = _rotations()
+    got = kernels.so3_log(jnp.moveaxis(R, 0, -1)).T
+    np.testing.assert_allclose(got, lie.so3_log(R), rtol=0, atol=1e-14)
+
+
+def test_se3_log_is_lie_se3_log():
+    R = _rotations()
+    p = jax.random.normal(jax.random.PRNGKey(1), (R.shape[0], 3)) * 300.0
+    T = lie.make_pose(R, p)
+    got = kernels.se3_log(jnp.moveaxis(T[:, :3], 0, -1)).T
+    np.testing.assert_allclose(got, lie.se3_log(T), rtol=1e-12, atol=1e-11)
+
+
+def _left_jacobian_autodiff(xi):
+    inv = lie.inverse(lie.se3_exp(xi))
+    return jax.jacfwd(lambda e: lie.se3_log(lie.se3_exp(xi + e) @ inv))(jnp.zeros(6))
+
+
+def test_se3_left_jacobian_is_the_derivative_of_exp():
+    rng = np.random.default_rng(3)
+    scales = [[30.0] * 3 + [1.0] * 3, [1.0] * 3 + [0.05] * 3, [1.0] * 3 + [1e-5] * 3]
+    xis = np.concatenate([rng.normal(size=(8, 6)) * s for s in scales])
+    # Both sides of the small-angle switch, and zero rotation.
+    edges = [[1, 2, 3, 0, 0, 0], [1, 2, 3, 0.0999, 0, 0], [1, 2, 3, 0.1001, 0, 0]]
+    xis = np.concatenate([xis, edges])
+    xis = jnp.asarray(xis)
+    J = jnp.moveaxis(jax.jit(kernels.se3_left_jacobian)(xis.T), -1, 0)
+    J_inv = jnp.moveaxis(jax.jit(kernels.se3_left_jacobian_inverse)(xis.T), -1, 0)
+    ref = jax.jit(jax.vmap(_left_jacobian_autodiff))(xis)
+    np.testing.assert_allclose(J, ref, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
+    np.testing.assert_allclose(J_inv @ ref, np.broadcast_to(np.eye(6), ref.shape), atol=1e-12)
+
+
+@pytest.mark.parametrize("noise", [None, NOISE], ids=["paper", "weighted"])
+def test_lm_jacobian_is_the_derivative_of_the_residual(cdra, noise):
+    q, T, P, Ts, X = _problem(cdra, 3, noise=NOISE)
+    X = 0.7 * X + 0.01  # away from the solution and from zero
+
+    def residual(X):
+        Y = residual_twist(T, tool_pose(apply_frame_errors(cdra, X), q))
+        if noise is not None:
+            Y = jnp.einsum("kij,kj->ki", whitening(T, noise), Y)
+        return Y.T.reshape(-1)  # component-major, as residual_jacobian
+
+    r, (dp, dR), J = eqx.filter_jit(residual_jacobian)(X, cdra.frames, P, Ts, noise)
+    ref = jax.jit(jax.jacfwd(residual))(X)
+    np.testing.assert_allclose(r, jax.jit(residual)(X), rtol=0, atol=1e-11)
+    np.testing.assert_allclose(J, ref, rtol=0, atol=1e-13 * float(jnp.max(jnp.abs(ref))))
+
+
+# --------------------------------------------------------------------------- normal equations
+
+
+def _rank_deficient(seed, rows=90, n=24, null=2):
+    rng = np.random.default_rng(seed)
+    D = rng.normal(size=(rows, n)) * np.logspace(0, -3, n)  # graded, condition ~1e3
+    D[:, :null] = D[:, null : 2 * null] @ rng.normal(size=(null, null))
+    return D, rng.normal(size=rows)
+
+
+def test_pivoted_cholesky_factorises_and_reveals_the_rank():
+    D, _ = _rank_deficient(0, null=3)
+    N = D.T @ D
+    L, rank = pivoted_cholesky(N, normal_cutoff(np.float64))
+    assert int(rank) == 21
+    np.testing.assert_allclose(L @ L.T, N, rtol=0, atol=1e-14 * np.abs(N).max())
+    assert np.all(np.asarray(L)[:, 21:] == 0)  # the dropped steps are the trailing columns
+    assert int(pivoted_cholesky(np.zeros((5, 5)), 1e-11)[1]) == 0
+
+
+def test_min_norm_solve_normal_is_the_pseudo_inverse():
+    for seed in range(4):
+        D, Y = _rank_deficient(seed)
+        x, rank, smallest = min_norm_solve_normal(D.T @ D, D.T @ Y)
+        expected = np.linalg.pinv(D, rcond=1e-10) @ Y
+        assert int(rank) == 22
+        assert 1e-9 < float(smallest) < 1.0
+        np.testing.assert_allclose(x, expected, rtol=0, atol=1e-11 * np.abs(expected).max())
+        _, null_space = np.linalg.eigh(D.T @ D)
+        assert np.abs(null_space[:, :2].T @ np.asarray(x)).max() < 1e-11 * np.abs(expected).max()
+        x_svd, rank_svd, _ = min_norm_lstsq(D, Y)
+        assert int(rank_svd) == 22
+        np.testing.assert_allclose(x, x_svd, rtol=0, atol=1e-11 * np.abs(expected).max())
+
+
+def test_normal_cutoff():
+    assert normal_cutoff(np.float64) == pytest.approx(default_rcond(np.float64))
+    assert normal_cutoff(np.float64, 1e-3) == pytest.approx(1e-6)
+    assert normal_cutoff(np.float64, 1e-12) == normal_cutoff(np.float64)  # the floor
+
+
+# --------------------------------------------------------------------------- the paper solver
+
+
+@eqx.filter_jit
+def _smallest_pivot(arm, q, T):
+    def one(qq, tt):
+        P = jnp.moveaxis(module_poses(arm, qq)[..., :3, :], 0, -1)
+        lin = kernels.linearise(arm.frames, P, kernels.pose_stack(tt))
+        return min_norm_solve_normal(*lin.normal_equations())[2]
+
+    return jax.vmap(one)(q, T)
+
+
+@eqx.filter_jit
+def _batch(arm, q, T, exact):
+    # An explicit rcond (here the default value) selects the SVD step.
+    rcond = default_rcond(jnp.float64) if exact else None
+    return jax.vmap(lambda qq, tt: calibrate_paper(arm, qq, tt, rcond=rcond, throw=False))(q, T)
+
+
+@pytest.mark.slow
+def test_fast_paper_solver_is_the_svd_solver(cdra):
+    """6 poses: a third of the sets have an identifiable direction that the normal equations do
+    not resolve (pivot below RESOLVED_PIVOT, or dropped): those are redone with SVD steps."""
+    keys = jax.random.split(jax.random.PRNGKey(11), 24)
+    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 6))(keys)
+    # Both paths are exercised: some sets are resolved at the nominal model, some are not.
+    smallest = _smallest_pivot(cdra, q, T)
+    resolved = np.asarray(smallest) >= RESOLVED_PIVOT
+    assert 0 < resolved.sum() < resolved.size
+    fast = _batch(cdra, q, T, False)
+    exact = _batch(cdra, q, T, True)
+    np.testing.assert_array_equal(fast.iterations, exact.iterations)
+    np.testing.assert_array_equal(fast.rank, exact.rank)
+    np.testing.assert_array_equal(fast.result._value, exact.result._value)
+    for field in ("frames", "errors", "delta_p", "singular_values"):
+        a, b = np.asarray(getattr(fast, field)), np.asarray(getattr(exact, field))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-8, err_msg=field)
