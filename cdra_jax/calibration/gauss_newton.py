@@ -33,9 +33,9 @@ from .. import lie
 from ..arm import Arm
 from . import kernels
 from .batching import chunked_vmap
-from .linear import default_rcond, min_norm_lstsq, min_norm_solve_normal, normal_cutoff
+from .linear import min_norm_lstsq, min_norm_solve_normal, normal_cutoff
 from .model import NoiseModel
-from .solution import RESULTS, CalibrationSolution, _assemble_solution, _solve_problem
+from .solution import RESULTS, CalibrationSolution, _solution_at, _solve_problem
 
 CHUNK_SIZE = 128
 """Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
@@ -184,26 +184,22 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
         k, frames, steps, dps, dRs, steps_ok, done, ok, _, lin = jax.lax.while_loop(
             lambda c: ~c[8], body, init
         )
-        s = jnp.linalg.svd(lin.DT, compute_uv=False)
-        rc = default_rcond(dtype) if rcond is None else rcond
-        rank = jnp.sum(s > rc * s[..., :1], axis=-1)
-        sol = _assemble_solution(
+        sol = _solution_at(
             frames,
             frames0,
-            ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
+            lin,
+            ok=ok,
+            rcond=rcond,
             done=done,
             iterations=k,
             step_norm=steps,
             delta_p=dps,
             delta_R=dRs,
-            rank=rank,
-            singular_values=s,
-            cost=jnp.sum(lin.Y * lin.Y),
             solver=solver,
         )
         rank_lo, rank_hi, resolved = steps_ok
         redo = (sol.result != RESULTS.nonfinite) & (k > 0) & (fast_allowed and not use_svd)
-        redo = redo & ((rank_lo != rank) | (rank_hi != rank) | ~resolved)
+        redo = redo & ((rank_lo != sol.rank) | (rank_hi != sol.rank) | ~resolved)
         return sol, redo
 
     def solve_batch(*args):

@@ -49,7 +49,7 @@ from . import kernels
 from .batching import chunked_vmap
 from .linear import default_rcond
 from .model import NoiseModel
-from .solution import CalibrationSolution, _assemble_solution, _solve_problem
+from .solution import CalibrationSolution, _solution_at, _solve_problem
 
 CHUNK_SIZE = 128
 """Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
@@ -236,20 +236,17 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         P, T, noise = setup(frames0, poses, measured, *noise_std)
         frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
         lin = kernels.linearise(frames, P, T, noise)
-        s = jnp.linalg.svd(lin.DT, compute_uv=False)
-        rc = default_rcond(measured.dtype) if rcond is None else rcond
-        return _assemble_solution(
+        return _solution_at(
             frames,
             frames0,
-            ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
+            lin,
+            ok=ok,
+            rcond=rcond,
             done=done,
             iterations=k,
             step_norm=steps,
             delta_p=dps.at[k].set(lin.delta_p),
             delta_R=dRs.at[k].set(lin.delta_R),
-            rank=jnp.sum(s > rc * s[..., :1], axis=-1),
-            singular_values=s,
-            cost=jnp.sum(lin.Y * lin.Y),
             solver="lm",
         )
 

@@ -160,3 +160,27 @@ def _assemble_solution(
         cost=cost,
         solver=solver,
     )
+
+
+def _solution_at(
+    frames: Array, nominal: Array, lin, *, ok: Array, rcond: float | None, **history
+) -> CalibrationSolution:
+    """:func:`_assemble_solution` at the final model of a solve, from its linearisation ``lin``
+    (a :class:`.kernels.Linearisation`): the rank and singular values of the whitened Eq. 9
+    Jacobian (cut-off ``rcond``, default :func:`.linear.default_rcond`), the cost ``|Y~|^2``, and
+    ``ok`` only where Eqs. 20-21 are finite. ``history``: ``done``, ``iterations``,
+    ``step_norm``, ``delta_p``, ``delta_R``, ``solver`` as for :func:`_assemble_solution`.
+    """
+    from .linear import default_rcond
+
+    s = jnp.linalg.svd(lin.DT, compute_uv=False)
+    rc = default_rcond(lin.DT.dtype) if rcond is None else rcond
+    return _assemble_solution(
+        frames,
+        nominal,
+        ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
+        rank=jnp.sum(s > rc * s[..., :1], axis=-1),
+        singular_values=s,
+        cost=jnp.sum(lin.Y * lin.Y),
+        **history,
+    )
