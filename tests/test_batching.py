@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import os
-import pathlib
-import subprocess
-import sys
 import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _devices import run_on_two_cpu_devices
 
 from cdra_jax.calibration.batching import chunked_vmap
-
-ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def _newton_sqrt(a, x0, tol):
@@ -81,17 +76,4 @@ def test_lm_runs_with_the_batch_sharded_over_two_cpu_devices():
         np.testing.assert_array_equal(sol.iterations, ref.iterations)
         """
     )
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
-    ).strip()
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    proc = subprocess.run(
-        [sys.executable, "-c", script],
-        env=env,
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    run_on_two_cpu_devices(script, timeout=240)

@@ -5,16 +5,13 @@ so the vmapped trial function is compiled once per process.
 """
 
 import importlib.util
-import os
-import subprocess
-import sys
 import textwrap
-from pathlib import Path
 
 import jax
 import matplotlib
 import numpy as np
 import pytest
+from _devices import run_on_two_cpu_devices
 
 from cdra_jax import NoiseModel, apply_frame_errors, calibrate_paper, deviation_metrics, tool_pose
 from cdra_jax.cli_sweep import main as sweep_main
@@ -31,7 +28,6 @@ matplotlib.use("Agg")
 
 LEVELS = [(0.08, 1e-3), (0.2, 2e-3)]
 CELL = dict(solvers=["weighted"], seed=7, chunk=4, m_verify=10, progress=False)
-ROOT = Path(__file__).resolve().parents[1]
 FLOATS = [c for c in COLUMNS if c not in ("solver", "result", "converged")]
 
 
@@ -130,15 +126,7 @@ def test_sharded_over_two_devices_matches(table, tmp_path):
         assert len(o["dp_fit"].sharding.device_set) == 2
         """
     )
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
-    ).strip()
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    proc = subprocess.run(
-        [sys.executable, "-c", script], env=env, cwd=ROOT, capture_output=True, text=True
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    run_on_two_cpu_devices(script)
     sharded = read_sweep(out)
     assert len(sharded) == len(table)
     _assert_same_trials(table, sharded)

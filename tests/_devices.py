@@ -1,0 +1,30 @@
+"""Run a Python script in a subprocess that sees two (forced) XLA:CPU host devices."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_on_two_cpu_devices(script: str, timeout: float | None = None) -> None:
+    """Run ``script`` with ``--xla_force_host_platform_device_count=2`` (the flag must be set
+    before JAX starts, hence the subprocess) and the checkout on ``PYTHONPATH``; fail the test
+    with the end of its stderr when it exits non-zero."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    ).strip()
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    proc = subprocess.run(
+        [sys.executable, "-c", script],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
