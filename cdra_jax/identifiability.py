@@ -157,7 +157,7 @@ def format_combination(coeffs: np.ndarray, names: tuple[str, ...], tol: float = 
     is_trans = np.array([not _is_rotation(n) for n in names])
     # Magnitudes rounded so that equal coefficients (up to rounding) keep the parameter order.
     order = np.lexsort((np.arange(len(names)), -np.round(np.abs(coeffs), 9), is_trans))
-    parts = []
+    parts: list[str] = []
     for i in order:
         c = coeffs[i]
         if abs(c) < tol:

@@ -219,9 +219,10 @@ def diagnose(
     F_all = all_features(everything, fit_arm, q, aux)
     n_geo = arm.n_params
     y0 = jnp.zeros(n_geo + F_all.n_params, q.dtype)
-    r, Jfull = residual_and_jacobian(y0, fit_arm, q, T, G, F_all)
-    r = np.asarray(r, float)
-    Jfull = np.asarray(Jfull, float)
+    assert G is not None  # weight_noise is a NoiseModel here, so the residual is whitened
+    r_j, J_j = residual_and_jacobian(y0, fit_arm, q, T, G, F_all)
+    r = np.asarray(r_j, float)
+    Jfull = np.asarray(J_j, float)
     D, J = Jfull[:, :n_geo], Jfull[:, n_geo:]
     UD = stats.orthonormal_basis(D)
     rank = UD.shape[1]
@@ -260,13 +261,13 @@ def diagnose(
             # with a wide covariance gains likelihood without predicting better)
             merit = min(gain, 0.5 * (ho0.sum_of_squares - ho.sum_of_squares))
         evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A, "merit": merit}
-    groups: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
+    by_place: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
     for c, why in table:
-        groups.setdefault((c.name, c.location), []).append((c, why))
+        by_place.setdefault((c.name, c.location), []).append((c, why))
     rows: list[CandidateRow] = []
     chosen: dict[tuple[str, str], Candidate] = {}
     group_p: dict[tuple[str, str], float] = {}
-    for key, members in groups.items():
+    for key, members in by_place.items():
         ok = [c for c, why in members if why is None]
         if not ok:
             c0, why0 = members[0]

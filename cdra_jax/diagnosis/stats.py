@@ -150,14 +150,14 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
         logdet += 2.0 * float(np.sum(np.log(np.diag(L))))
         res[te] = e
         var[te] = np.diag(S)
-        if W is not None:
+        if W is not None and Wss is not None:
             B = np.zeros((int(te.sum()), N))
             B[:, te] = np.eye(int(te.sum()))
             B[:, tr] = -G
             W[te] = np.linalg.solve(L, B)
             Wss[te] = B
     weights = ss_weights = None
-    if W is not None:
+    if W is not None and Wss is not None:
         weights = np.linalg.svd(W, compute_uv=False) ** 2
         ss_weights = np.linalg.svd(Wss, compute_uv=False) ** 2
     loglik = -0.5 * (Q + logdet + N * np.log(2 * np.pi))

@@ -192,10 +192,10 @@ def check_cable_lengths(
         res = np.asarray(sol.residuals)
         w = np.asarray(w)
         codes = result_names(sol.result)
-        for k, i in enumerate(good):
-            rms[i] = rr[k]
+        for k, row in enumerate(good):
+            rms[row] = rr[k]
             if codes[k] == "successful":
-                states[i] = st[k]
+                states[row] = st[k]
                 continue
             if codes[k] == "inconsistent_lengths":
                 what = (
@@ -209,17 +209,17 @@ def check_cable_lengths(
                         f"; this length is {-res[k, j]:+.4g} mm off the best-fitting pose (the "
                         "largest standardised misfit)"
                     )
-                    problems.append(CableDataProblem(int(i), j, what))
+                    problems.append(CableDataProblem(int(row), j, what))
                 else:
                     what += (
                         f" (with {n} cables for {module.dof} degrees of freedom, one redundant "
                         "length, a misfit cannot be pinned to one column)"
                     )
-                    problems.append(CableDataProblem(int(i), None, what))
+                    problems.append(CableDataProblem(int(row), None, what))
             else:
                 problems.append(
                     CableDataProblem(
-                        int(i),
+                        int(row),
                         None,
                         f"forward kinematics of module {module.name!r} failed ({codes[k]}); "
                         f"RMS residual {rr[k]:.4g} mm",

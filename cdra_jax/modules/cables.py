@@ -180,7 +180,7 @@ def cable_forward_kinematics(
     initial: ArrayLike | None = None,
     max_iterations: int = 50,
     tol: float = 1e-12,
-    residual_tol: float = DEFAULT_RESIDUAL_TOL,
+    residual_tol: float | ArrayLike = DEFAULT_RESIDUAL_TOL,
 ) -> CableFKSolution:
     """Forward kinematics: the module state that best reproduces measured cable lengths.
 

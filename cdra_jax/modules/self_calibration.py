@@ -649,7 +649,8 @@ def analyze_self_calibration(
     row = Vt[:rank]
     null = Vt[rank:]
     theta = np.asarray(module_parameters(module), float)
-    found, vecs = [], []
+    found: list = []
+    vecs: list[np.ndarray] = []
     for label, v in _symmetry_candidates(module, theta):
         nv = np.linalg.norm(v)
         if nv == 0:
