@@ -295,12 +295,23 @@ def test_vmap_equals_loop_and_isolates_a_broken_trial(cdra, name, noisy_trials):
     assert names[broken] == "nonfinite"
     assert np.all(np.delete(names, broken) == "successful")
     assert np.all(np.isfinite(np.delete(batch.frames, broken, axis=0)))
-    fields = ("frames", "errors", "step_norm", "delta_p", "delta_R", "cost")
+    fields = ("frames", "errors", "cost")
+    history = ("step_norm", "delta_p", "delta_R")
     q, T = np.asarray(q), np.asarray(T)
     for i in range(n):
         one = jax.device_get(_solve(name, cdra, q[i], T[i]))
         assert result_names(one.result) == names[i]
-        assert one.iterations == batch.iterations[i] and one.rank == batch.rank[i]
+        assert one.rank == batch.rank[i]
+        if name == "paper":
+            assert one.iterations == batch.iterations[i]
+            pick_one = pick_batch = np.ones(one.step_norm.shape, bool)
+        else:
+            # LM: the accepted steps must agree. Near the optimum its ratio test compares
+            # cost changes at the rounding level, so a final step may be rejected (step norm
+            # 0, a repeated entry in the history) once more in the unbatched run than in the
+            # batch or vice versa (seen: 1 trial of 256).
+            pick_one, pick_batch = one.step_norm > 0, batch.step_norm[i] > 0
+            assert abs(int(one.iterations) - int(batch.iterations[i])) <= 3
         for field in fields:
             np.testing.assert_allclose(
                 getattr(one, field),
@@ -309,6 +320,14 @@ def test_vmap_equals_loop_and_isolates_a_broken_trial(cdra, name, noisy_trials):
                 atol=1e-9,
                 err_msg=f"{field} of trial {i}",
             )
+        for field in history:  # the entries after each accepted step (and the start)
+            a, b = getattr(one, field), getattr(batch, field)[i]
+            if field == "step_norm":
+                a, b = a[pick_one], b[pick_batch]
+            else:  # entry k + 1 is the model after step k
+                a = np.concatenate([a[:1], a[1:][pick_one]])
+                b = np.concatenate([b[:1], b[1:][pick_batch]])
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9, err_msg=f"{field} of trial {i}")
 
 
 @pytest.fixture(scope="module")

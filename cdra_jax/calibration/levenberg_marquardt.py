@@ -17,6 +17,25 @@ damped steps at the rounding floor are mostly rejected and the solve needs tens 
 Besides optimistix' own termination the loop stops on MINPACK-style tests of the next
 proposed step (:func:`_converged`).
 
+Damping. optimistix starts its trust region at a step size of 1, i.e. a damping
+``lambda = 1`` on ``J^T J``, which in the rescaled coordinates (``J^T J ~= I``) halves the
+first Gauss-Newton step and costs about four extra steps before the region has grown. The
+solver starts at ``lambda = tau max(diag(J^T J)) = tau`` with ``tau = 1e-6``
+(:data:`INITIAL_DAMPING`), the choice of Madsen, Nielsen and Tingleff (*Methods for
+non-linear least squares problems*, 2004, Sec. 3.2) for a starting point believed close to
+the solution, as the nominal model is; the ratio test still shrinks the region wherever a
+step fails to lower the cost. The damped step ``(J^T J + lambda I) du = -J^T r`` is solved
+from the normal equations by Cholesky (``lineax.Normal(lineax.Cholesky())``): with the
+columns of ``J`` near-orthonormal the normal equations lose nothing, and they cost a fraction
+of optimistix' default QR of the augmented ``(6m + r, r)`` system.
+
+Fixed point. LM minimises the exact sum of squares of Eq. 7's residual; the paper's iteration
+uses the first-order Jacobian ``D`` of Eq. 8, which omits the derivative of the logarithm
+(``J_r^-1(Y)``, identity at ``Y = 0``). Noise-free, both reach ``Y = 0``; with noise the
+paper's fixed point solves ``D^T Y = 0`` and sits a second-order distance from the
+least-squares minimum (for the CDRA at 80 um / 1e-3 rad, 15 poses: base and tool errors
+differ by a median 3e-5, whitened cost lower for LM by ~4e-6).
+
 Performance (see ``benchmarks/README.md``):
 
 * the residual is evaluated in the pose-last layout of :mod:`.kernels`, and returns the
@@ -39,6 +58,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import optimistix as optx
 from jax import Array
 from jax.typing import ArrayLike
@@ -53,6 +73,10 @@ from .solution import CalibrationSolution, _solution_at, _solve_problem
 
 CHUNK_SIZE = 128
 """Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
+
+INITIAL_DAMPING = 1e-6
+"""Initial Levenberg-Marquardt damping relative to ``max(diag(J^T J))`` (= 1 in the rescaled
+coordinates; see the module docstring)."""
 
 
 def calibrate_lm(
@@ -165,7 +189,7 @@ def _residual_fn(frames0, poses, measured, noise, basis):
 
 def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
     """The per-trial LM solver for one static configuration, chunked under ``vmap``."""
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     options: dict = {}
     tags: frozenset = frozenset()
 
@@ -178,6 +202,13 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
     def optx_state(fn, y0):
         f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, None))
         state0 = solver.init(fn, y0, None, options, f_struct, aux_struct, tags)
+        # The trust region's step size is 1 / damping (optimistix' DampedNewtonDescent).
+        step_size = state0.search_state.step_size
+        state0 = eqx.tree_at(
+            lambda s: s.search_state.step_size,
+            state0,
+            jnp.asarray(1.0 / INITIAL_DAMPING, step_size.dtype),
+        )
         # As optimistix' own loop does: carry only the array part of the solver state.
         return eqx.partition(state0, eqx.is_array)
 
