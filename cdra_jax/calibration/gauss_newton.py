@@ -23,8 +23,6 @@ Performance (see ``benchmarks/README.md``). The solver is written for Monte-Carl
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
@@ -35,7 +33,13 @@ from . import kernels
 from .batching import chunked_vmap
 from .linear import min_norm_lstsq, min_norm_solve_normal, normal_cutoff
 from .model import NoiseModel
-from .solution import RESULTS, CalibrationSolution, _solution_at, _solve_problem
+from .solution import (
+    RESULTS,
+    CalibrationSolution,
+    _empty_solution,
+    _solution_at,
+    _solve_problem,
+)
 
 CHUNK_SIZE = 128
 """Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
@@ -110,10 +114,14 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
     results replace those of the trials to redo. The result is therefore the SVD solver's, up to
     rounding. (No data-dependent gather of the trials to redo: under ``jit`` with the batch
     sharded over several CPU devices, as the sweeps do, such a gather inside a loop deadlocked.)
+
+    The two passes run the same compiled code: ``use_svd`` is a traced scalar shared by the
+    batch, so the choice of step is a real branch (``lax.cond``) even under ``vmap``, and the
+    passes are iterations of one loop, so that the solver is traced and compiled once.
     """
 
     def run(use_svd, frames0, poses, measured, *noise_std):
-        """One trial; ``use_svd`` (a static bool) picks the step."""
+        """One trial; ``use_svd`` (a boolean scalar, unbatched) picks the step."""
         dtype = measured.dtype
         n = frames0.shape[0] * 6
         k_frames = frames0.shape[0]
@@ -136,7 +144,9 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
             return jnp.where(finite, X, nan), rank, pivot >= RESOLVED_PIVOT
 
         def step_of(lin):
-            return svd_step(lin) if use_svd or not fast_allowed else normal_step(lin)
+            if not fast_allowed:
+                return svd_step(lin)
+            return jax.lax.cond(use_svd, svd_step, normal_step, lin)
 
         # One linearisation per pass: a pass steps while the iteration runs, and the last pass
         # only linearises the final model (for Eqs. 20-21 and the rank), so that the model
@@ -198,25 +208,36 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
             solver=solver,
         )
         rank_lo, rank_hi, resolved = steps_ok
-        redo = (sol.result != RESULTS.nonfinite) & (k > 0) & (fast_allowed and not use_svd)
+        redo = (sol.result != RESULTS.nonfinite) & (k > 0) & fast_allowed & ~use_svd
         redo = redo & ((rank_lo != sol.rank) | (rank_hi != sol.rank) | ~resolved)
         return sol, redo
 
     def solve_batch(*args):
         """A batch (leading axis on every argument): fast, then SVD steps where needed."""
-        sol, redo = jax.vmap(functools.partial(run, False))(*args)
-
-        def redo_with_svd(sol):
-            again, _ = jax.vmap(functools.partial(run, True))(*args)
-
-            def take(a, b):
-                return jnp.where(redo.reshape(redo.shape + (1,) * (a.ndim - 1)), b, a)
-
-            return jax.tree.map(take, sol, again)
-
+        batched = jax.vmap(run, in_axes=(None,) + (0,) * len(args))
         if not _normal_equations_apply(args[2].dtype, rcond):
-            return sol  # SVD steps already: nothing to redo
-        return jax.lax.cond(jnp.any(redo), redo_with_svd, lambda sol: sol, sol)
+            return batched(jnp.asarray(True), *args)[0]  # SVD steps already: nothing to redo
+
+        def again(carry):
+            """Pass 0: fast steps for all; pass 1: SVD steps, kept where ``redo``."""
+            p, sol, redo = carry
+            new, new_redo = batched(p == 1, *args)
+            take = (p == 0) | redo
+
+            def pick(a, b):
+                return jnp.where(take.reshape(take.shape + (1,) * (a.ndim - 1)), b, a)
+
+            return p + 1, jax.tree.map(pick, sol, new), jnp.where(p == 0, new_redo, False)
+
+        frames0, measured = args[0], args[2]
+        batch = measured.shape[0]
+        init = _empty_solution(batch, frames0.shape[1], max_iterations, measured.dtype, solver)
+        _, sol, _ = jax.lax.while_loop(
+            lambda c: (c[0] == 0) | ((c[0] == 1) & jnp.any(c[2])),
+            again,
+            (jnp.asarray(0), init, jnp.zeros(batch, bool)),
+        )
+        return sol
 
     def solve(*args):
         return jax.tree.map(lambda x: x[0], solve_batch(*[a[None] for a in args]))

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -162,6 +163,31 @@ def _assemble_solution(
     )
 
 
+def _empty_solution(
+    batch: int, k_frames: int, max_iterations: int, dtype, solver: str
+) -> CalibrationSolution:
+    """A batch of ``batch`` all-zero solutions (the structure the solvers return), e.g. the
+    initial value of a loop that fills it in, without tracing a solver for its shapes."""
+    n = 6 * k_frames
+
+    def zeros(*shape, dtype=dtype):
+        return jnp.zeros((batch, *shape), dtype)
+
+    return CalibrationSolution(
+        frames=zeros(k_frames, 4, 4),
+        errors=zeros(k_frames, 6),
+        result=jax.tree.map(lambda v: jnp.broadcast_to(v, (batch,)), RESULTS.successful),  # type: ignore[arg-type]
+        iterations=zeros(dtype=jnp.asarray(0).dtype),
+        step_norm=zeros(max_iterations),
+        delta_p=zeros(max_iterations + 1),
+        delta_R=zeros(max_iterations + 1),
+        rank=zeros(dtype=jnp.asarray(0).dtype),
+        singular_values=zeros(n),
+        cost=zeros(),
+        solver=solver,
+    )
+
+
 def _solution_at(
     frames: Array, nominal: Array, lin, *, ok: Array, rcond: float | None, **history
 ) -> CalibrationSolution:
@@ -173,7 +199,9 @@ def _solution_at(
     """
     from .linear import default_rcond
 
-    s = jnp.linalg.svd(lin.DT, compute_uv=False)
+    # The singular values of D~ (6m x n) are those of the triangular factor of its QR
+    # decomposition (Householder, backward stable): an SVD of n x n instead of 6m x n.
+    s = jnp.linalg.svd(jnp.linalg.qr(lin.DT.T, mode="r"), compute_uv=False)
     rc = default_rcond(lin.DT.dtype) if rcond is None else rcond
     return _assemble_solution(
         frames,
