@@ -221,26 +221,28 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         u0 = jnp.zeros(basis.shape[-1], dtype)
         nan = jnp.asarray(jnp.nan, dtype)
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
-        return (
+        dyn_state, static_state = optx_state(fn, u0)
+        carry = (
             jnp.asarray(0),
             u0,
             basis,
-            optx_state(fn, u0)[0],
+            dyn_state,
             jnp.full((max_iterations,), nan),
             jnp.full((max_iterations + 1,), nan),
             jnp.full((max_iterations + 1,), nan),
             jnp.asarray(False),
             finite_in,
         )
+        return carry, static_state
 
     def running(carry):
         k, *_, done, ok = carry
         return (k < max_iterations) & ~done & ok
 
-    def step(carry, *args):
+    def step(carry, static_state, *args):
         k, u, basis, dyn_state, steps, dps, dRs, _, _ = carry
         fn = _residual_fn(args[0], *setup(*args), basis)
-        state = eqx.combine(optx_state(fn, u)[1], dyn_state)
+        state = eqx.combine(static_state, dyn_state)
         # The aux that optimistix returns belongs to its input u: Eqs. 20-21 at X_k.
         u_new, state, (dp, dR) = solver.step(fn, u, None, options, state, tags)
         done, _ = solver.terminate(fn, u, None, options, state, tags)
@@ -282,7 +284,10 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         )
 
     def one(*args):
-        carry = jax.lax.while_loop(running, lambda c: step(c, *args), init(*args))
+        # The static part of optimistix' state is the same at every step: taken once from
+        # init (tracing solver.init again in the loop body doubled the tracing time).
+        carry0, static_state = init(*args)
+        carry = jax.lax.while_loop(running, lambda c: step(c, static_state, *args), carry0)
         return finish(result(carry), *args)
 
     return chunked_vmap(one, CHUNK_SIZE)
