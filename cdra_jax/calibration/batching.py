@@ -32,32 +32,47 @@ def chunked_vmap(fn: Callable, chunk_size: int, batched: Callable | None = None)
         batched: the function applied to one chunk (all arguments with a leading chunk axis);
             ``jax.vmap(fn)`` by default. It lets a solver take decisions per chunk, e.g. redo a
             chunk a slower way only when one of its trials needs it.
+
+    ``fn`` is traced once per call, to a jaxpr: ``custom_vmap`` needs the unbatched function
+    and the default batching rule vmaps the same jaxpr, so that the Python code of ``fn`` (for
+    an optimistix solver, most of the lowering time) is not traced twice.
     """
-    wrapped = custom_vmap(fn)
-    chunk_fn = jax.vmap(fn) if batched is None else batched
 
-    @wrapped.def_vmap
-    def _rule(axis_size, in_batched, *args):
-        # Broadcast the unbatched arguments, so that every leaf has the batch axis in front.
-        args = jax.tree.map(
-            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
-            list(args),
-            list(in_batched),
-        )
-        if axis_size <= chunk_size:
-            out = chunk_fn(*args)
-        else:
-            n_chunks = -(-axis_size // chunk_size)
-            pad = n_chunks * chunk_size - axis_size
+    def call(*args):
+        closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
+        out_tree = jax.tree.structure(out_shape)
 
-            def to_chunks(x):
-                if pad:
-                    x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
-                return x.reshape((n_chunks, chunk_size) + x.shape[1:])
+        def replay(*a):
+            flat = jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *jax.tree.leaves(a))
+            return jax.tree.unflatten(out_tree, flat)
 
-            chunks = jax.tree.map(to_chunks, args)
-            out = jax.lax.map(lambda c: chunk_fn(*c), chunks)
-            out = jax.tree.map(lambda y: y.reshape((-1,) + y.shape[2:])[:axis_size], out)
-        return out, jax.tree.map(lambda _: True, out)
+        wrapped = custom_vmap(replay)
+        chunk_fn = jax.vmap(replay) if batched is None else batched
 
-    return wrapped
+        @wrapped.def_vmap
+        def _rule(axis_size, in_batched, *args):
+            # Broadcast the unbatched arguments, so that every leaf has the batch axis in front.
+            args = jax.tree.map(
+                lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
+                list(args),
+                list(in_batched),
+            )
+            if axis_size <= chunk_size:
+                out = chunk_fn(*args)
+            else:
+                n_chunks = -(-axis_size // chunk_size)
+                pad = n_chunks * chunk_size - axis_size
+
+                def to_chunks(x):
+                    if pad:
+                        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
+                    return x.reshape((n_chunks, chunk_size) + x.shape[1:])
+
+                chunks = jax.tree.map(to_chunks, args)
+                out = jax.lax.map(lambda c: chunk_fn(*c), chunks)
+                out = jax.tree.map(lambda y: y.reshape((-1,) + y.shape[2:])[:axis_size], out)
+            return out, jax.tree.map(lambda _: True, out)
+
+        return wrapped(*args)
+
+    return call
