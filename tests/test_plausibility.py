@@ -8,9 +8,10 @@ import json
 import re
 
 import equinox as eqx
+import jax
 import numpy as np
 import pytest
-from _robust_data import M, problem
+from _robust_data import NOISE, M, problem
 
 from cdra_jax import tool_pose
 from cdra_jax.io import (
@@ -25,7 +26,8 @@ from cdra_jax.io import (
     rigid_transform_problem,
     save_model,
 )
-from cdra_jax.io.plausibility import check_plausibility
+from cdra_jax.io.plausibility import ROW_OUTLIER_MIN_MM, check_plausibility, far_rows
+from cdra_jax.simulation import simulate_trial
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +151,8 @@ def test_warnings_for_odd_rows_limits_and_repeats(cdra, data):
     q[9], T[9] = q[2], T[2]  # a repeated pose
     warnings = check_plausibility(cdra, _load(cdra, _text(cdra, q, T)))
     text = "\n".join(warnings)
-    assert "pose 'p05' (line 6): measured position 4" in text and "mis-seated probe" in text
+    assert "pose 'p05' (line 6), column 'measured.x': measured position 4" in text
+    assert "measured.x alone is +4" in text and "mis-seated probe" in text
     limits = f"1 of 12 poses outside the model's limits [{lo:g}, {hi:g}] rad"
     assert f"column 'shoulder.rx': {limits}" in text
     assert f"pose 'p07' (line 8), {q[6, 0]:.6g})" in text
@@ -227,3 +230,49 @@ def test_save_model_is_atomic_and_refuses_to_overwrite(cdra, tmp_path):
     assert path.read_text() == before and list(tmp_path.iterdir()) == [path]  # no temp left
     save_model(cdra, path, exact=True, force=True)
     np.testing.assert_array_equal(np.asarray(load_model(path).frames), np.asarray(cdra.frames))
+
+
+N_SEEDS, M_TYPO = 300, 30
+
+
+@pytest.fixture(scope="module")
+def simulated_files(cdra):
+    """``N_SEEDS`` simulated 30-pose files (random errors in the paper's range, noise as the
+    paper's device): module states, measured poses and the nominal model's predictions."""
+
+    @eqx.filter_jit
+    def generate(keys, arm):
+        def one(key):
+            q, T, _, _, _ = simulate_trial(key, arm, M_TYPO, noise=NOISE, m_verify=1)
+            return q, T, tool_pose(arm, q)
+
+        return jax.vmap(one)(keys)
+
+    keys = jax.random.split(jax.random.PRNGKey(2024), N_SEEDS)
+    return tuple(np.asarray(a) for a in generate(keys, cdra))
+
+
+def test_a_400_mm_typo_in_one_of_30_rows_is_named(cdra, simulated_files):
+    q, T, _ = simulated_files
+    text = _text(cdra, q[0], T[0])
+    typo = _edit(text, lambda c: c["measured.x"].__setitem__(4, c["measured.x"][4] + 400.0))
+    warnings = check_plausibility(cdra, _load(cdra, typo))
+    assert len(warnings) == 1, warnings
+    assert warnings[0].startswith("pose 'p05' (line 6), column 'measured.x': measured position ")
+    assert "measured.x alone is +4" in warnings[0] and "--loss huber" in warnings[0]
+    # the old rule, 10 x the median distance, let this one through
+    dist = np.linalg.norm(T[0, :, :3, 3] - simulated_files[2][0, :, :3, 3], axis=-1)
+    dist[4] = np.linalg.norm(_load(cdra, typo).measured[4, :3, 3] - simulated_files[2][0, 4, :3, 3])
+    assert dist[4] < 10 * np.median(dist) and list(far_rows(dist)[0]) == [4]
+    assert check_plausibility(cdra, _load(cdra, text)) == ()
+
+
+def test_no_typo_warning_on_clean_simulated_files(cdra, simulated_files):
+    q, T, T_model = simulated_files
+    dist = np.linalg.norm(T[..., :3, 3] - T_model[..., :3, 3], axis=-1)
+    named = [s for s in range(N_SEEDS) if far_rows(dist[s])[0].size]
+    assert named == []
+    excess = dist - np.median(dist, axis=1, keepdims=True)
+    assert excess.max() < 0.75 * ROW_OUTLIER_MIN_MM  # a clear margin below the floor
+    for s in range(3):  # the whole check on a few files: silent
+        assert check_plausibility(cdra, _load(cdra, _text(cdra, q[s], T[s]))) == ()
