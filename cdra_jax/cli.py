@@ -245,7 +245,10 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     ident = report.summary()
     if noise is not None:
         # Covariance of the identified parameters, Cramer-Rao bound and 95 % intervals, at the
-        # calibrated model (issue: uncertainty with noise weights).
+        # calibrated model (issue: uncertainty with noise weights); a robust fit's with its final
+        # IRLS weights, so down-weighted poses carry less information.
+        import numpy as np
+
         from .io import calibrated_arm_from_result
         from .uncertainty import analyze_uncertainty
 
@@ -255,6 +258,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
             noise,
             meas.measured,
             estimate=result_errors(result, arm),
+            weights=None if args.loss == "ls" else np.asarray(sol.weights),
         )
         result["uncertainty"] = unc.to_dict()
         ident = ident + "\n" + unc.summary()
