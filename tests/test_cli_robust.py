@@ -99,6 +99,15 @@ def test_degenerate_pose_sets_warn_and_give_the_min_norm_answer(files, capsys):
     err, printed = _errors(capsys)
     assert "rank 6 of 24 parameters" in printed and printed.count("  unidentifiable: ") == 18
     assert any("11 pose(s) repeat the module state" in e for e in err)
+    # degenerate data: on stderr as warnings (and in the JSON), not only in the summary
+    assert (
+        "warning: degenerate pose set: rank 6 of 24 parameters from 12 poses, where as many "
+        "poses spread over the joint ranges give 22; 16 more combination(s) are lost"
+    ) in "\n".join(err)
+    assert "warning: 18 parameter combination(s) cannot be identified from tool poses; " in (
+        "\n".join(err)
+    )
+    assert any(w.startswith("degenerate pose set: rank 6 of 24") for w in r["warnings"])
 
     elbow = p.q.copy()
     elbow[:, 3] = 1.1
@@ -107,7 +116,10 @@ def test_degenerate_pose_sets_warn_and_give_the_min_norm_answer(files, capsys):
     r = json.loads((d / "elbow.json").read_text())
     assert r["identifiability"]["rank"] == 18 and r["final"]["delta_p_mm"] < 1e-8
     assert all(np.isfinite(v) for f in r["frames"].values() for v in f["error_twist"].values())
-    assert "rank 18 of 24" in _errors(capsys)[1]
+    err, printed = _errors(capsys)
+    assert "rank 18 of 24" in printed
+    assert "warning: module 'elbow' never moves in this pose set (constant state)" in "\n".join(err)
+    assert any(e.startswith("warning: degenerate pose set: rank 18 of 24") for e in err)
 
     near = p.q[:1] + 0.003 * np.random.default_rng(1).standard_normal((M, 7))
     data = _write(d, "near.csv", p, near, np.asarray(tool_pose(actual, near)))
