@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,6 +31,7 @@ from cdra_jax.calibration import (
     whitening,
 )
 from cdra_jax.calibration.robust import unit_residuals
+from cdra_jax.io import result_to_dict
 from cdra_jax.simulation import add_measurement_noise
 from cdra_jax.uncertainty import analyze_uncertainty, whitened_jacobian
 
@@ -204,6 +207,21 @@ def test_uncertainty_of_a_robust_fit_uses_its_final_weights(huber_fit):
     assert plain.to_dict()["weights"] is None
     with pytest.raises(ValueError, match="weights must be finite and positive, got 0 for pose 3"):
         analyze_uncertainty(at, p.q, NOISE, p.T_bad, weights=np.where(np.arange(M) == 3, 0, 1))
+
+
+def test_least_squares_with_too_optimistic_noise_flags_most_poses_and_says_why(huber_fit):
+    """The failure-table row 'many large residuals at a least-squares fit' (the CLI needs a
+    noise model for it; checked here on the result dict the CLI writes)."""
+    p, _ = huber_fit
+    fit = paper(p.arm, p.q, p.T, NOISE_ARR, throw=False)  # clean data, stated noise 0.08 mm
+    optimistic = NoiseModel(jnp.asarray(0.001), jnp.asarray(1e-5))  # ... but 80x smaller
+    ids = [f"p{i + 1:02d}" for i in range(M)]
+    r = result_to_dict(p.arm, fit, p.q, p.T, noise=optimistic, identifiability={}, pose_ids=ids)
+    (w,) = r["warnings"]
+    assert re.match(r"12 of 12 poses have standardized residuals above 1.93 \(p\d\d \(z = ", w)
+    assert "and 7 more): more than a few bad measurements explain; the noise model may be too " in w
+    assert w.endswith("(a robust loss, --loss huber, tells these apart)")
+    assert result_to_dict(p.arm, fit, p.q, p.T, noise=NOISE, identifiability={})["warnings"] == []
 
 
 @pytest.fixture(scope="module")
