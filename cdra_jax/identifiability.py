@@ -44,7 +44,7 @@ from jax.typing import ArrayLike
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
-from .calibration.validation import MIN_POSES
+from .calibration.validation import MIN_POSES, require_finite_states
 
 
 @dataclass(frozen=True)
@@ -295,7 +295,8 @@ def analyze(
 
     Raises:
         ValueError: fewer than 4 poses (the paper's lower bound) without
-            ``allow_underdetermined``, or a state array of the wrong shape.
+            ``allow_underdetermined``, or a state array of the wrong shape or with a
+            non-finite entry.
     """
     q = np.asarray(q, dtype=float)
     if q.ndim != 2 or q.shape[1] != arm.dof:
@@ -303,6 +304,7 @@ def analyze(
             f"module states must have shape (m, {arm.dof}) with columns {arm.state_names}, "
             f"got {q.shape}"
         )
+    require_finite_states(arm, q)
     m = q.shape[0]
     if m < MIN_POSES and not allow_underdetermined:
         raise ValueError(

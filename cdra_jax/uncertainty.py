@@ -51,6 +51,7 @@ from . import lie
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
+from .calibration.validation import require_finite_states
 from .identifiability import analyze as analyze_identifiability
 
 DEFAULT_CONFIDENCE = 0.95
@@ -221,17 +222,25 @@ def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseC
 
     Uses the unwhitened Jacobian ``D(q)`` of Eq. 8 at ``arm``: twist covariance
     ``D C D^T``; position error ``[I, -hat(p)] dT`` with ``p`` the model tool position.
+    Computed from a square-root factor ``C = L L^T`` (symmetric eigendecomposition, rounding
+    negatives clipped) as Gram matrices ``(D L)(D L)^T``, so variances are never negative: for a
+    nearly singular ``C`` (poses nearly the same) ``D C D^T`` formed directly can cancel to a
+    negative trace and a NaN RMS.
     """
     dtype = jnp.asarray(arm.frames).dtype
     q_eval = jnp.asarray(q_eval, dtype)
     tool, after = chain(arm.frames, module_poses(arm, q_eval))
     D = calibration_jacobian(after)  # (k, 6, n)
     C = jnp.asarray(covariance, dtype)
-    twist = jnp.einsum("...ai,...ij,...bj->...ab", D, C, D)
+    lam, U = jnp.linalg.eigh(0.5 * (C + jnp.swapaxes(C, -1, -2)))
+    L = U * jnp.sqrt(jnp.clip(lam, 0.0, None))[..., None, :]  # C = L L^T
+    DL = D @ L[..., None, :, :] if L.ndim > 2 else D @ L  # (k, 6, n)
+    twist = DL @ jnp.swapaxes(DL, -1, -2)
     p = lie.translation(tool)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), p.shape[:-1] + (3, 3))
     H = jnp.concatenate([eye, -lie.hat3(p)], axis=-1)  # (k, 3, 6)
-    position = jnp.einsum("...ai,...ij,...bj->...ab", H, twist, H)
+    HDL = H @ DL
+    position = HDL @ jnp.swapaxes(HDL, -1, -2)
     return PoseCovariance(twist=twist, position=position, rotation=twist[..., 3:, 3:])
 
 
@@ -418,7 +427,8 @@ def analyze_uncertainty(
             least squares.
 
     Raises:
-        ValueError: no noise model, a bad confidence, states of the wrong shape, or weights
+        ValueError: no noise model, a bad confidence, states of the wrong shape or not finite,
+            or weights
             that are not ``m`` finite positive numbers.
     """
     if noise is None:
@@ -430,6 +440,7 @@ def analyze_uncertainty(
             f"module states must have shape (m, {arm.dof}) with columns {arm.state_names}, "
             f"got {q.shape}"
         )
+    require_finite_states(arm, q)
     n = arm.n_params
     est = None
     if estimate is not None:
