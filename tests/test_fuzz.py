@@ -577,11 +577,12 @@ def test_uncertainty_is_finite_or_names_the_bad_state(q, levels, weights):
     assert "nan" not in r.summary()
 
 
-@fuzz(6)
+@fuzz(4)
 @given(state_sets(24), NOISE_LEVELS)
 def test_pose_selection_picks_distinct_poses_or_names_the_bad_state(pool, levels):
     # The default i-opt runs both the determinant-lemma (D-optimal start) and the Woodbury
-    # (I) passes; m is static, so it stays 5.
+    # (I) passes; m is static, so it stays 5. Each rank of the pool compiles the passes once
+    # (they work in the identifiable subspace), hence few examples.
     try:
         sel = select_from_pool(ARM, pool, 5, _noise(levels))
     except ValueError as e:
