@@ -8,9 +8,9 @@ Usage::
 
 Exit codes: 0 success; 1 bad input or a file problem (one line ``error: ...`` on stderr, no
 traceback); 2 wrong usage (argparse); 3 the calibration did not converge (the result file is
-still written, with ``"converged": false``). Warnings (implausible data, a poorly conditioned
-pose set, outliers) do not change the exit code: each is one ``warning: ...`` line on stderr and
-an entry of ``warnings`` in the result file.
+still written, with ``"converged": false``). Warnings (implausible data, a degenerate or poorly
+conditioned pose set, outliers) do not change the exit code: each is one ``warning: ...`` line on
+stderr and an entry of ``warnings`` in the result file.
 
 Adding a subcommand: write a ``_register_<name>(subparsers)`` function that adds its parser and
 sets ``func`` (a callable ``args -> int``) with ``set_defaults``, and append it to
@@ -197,7 +197,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
 
     from .calibration import calibrate_lm, calibrate_paper, calibrate_robust
     from .conditioning import conditioning
-    from .identifiability import analyze
+    from .identifiability import analyze, generic_rank
     from .io import (
         check_plausibility,
         check_pose_count,
@@ -226,7 +226,21 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     # (e.g. "0.707 upper_arm.vy - 0.707 forearm.vy" for the CDRA).
     report = analyze(arm, meas.q, meas.measured, noise)
     cond = conditioning(arm, meas.q, meas.measured, noise)
-    shown = list(warnings)  # printed on stderr; the identifiability ones are in the summary
+    # A pose set that identifies less than poses spread over the joint ranges would (repeated
+    # poses, a module that never moves) is degenerate data: say so on stderr. Directions that no
+    # pose set identifies (the CDRA's two along the elbow axis) are a property of the model:
+    # they stay in the summary and the JSON.
+    generic = generic_rank(arm, meas.m, noise)
+    degenerate = []
+    if report.rank < generic:
+        degenerate = [
+            f"degenerate pose set: rank {report.rank} of {report.n_params} parameters from "
+            f"{report.n_poses} poses, where as many poses spread over the joint ranges give "
+            f"{generic}; {generic - report.rank} more combination(s) are lost to the pose set "
+            "(the unidentifiable directions are listed in the summary)",
+            *report.warnings,
+        ]
+    shown = list(warnings) + degenerate  # printed on stderr
     if cond.warning:
         shown.append(cond.warning)
     result = result_to_dict(
@@ -239,13 +253,21 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         pose_ids=meas.pose_ids,
         inputs={"model": model_label, "data": args.data, "data_sha256": _sha256(args.data)},
         conditioning=cond.to_dict(),
-        warnings=[*warnings, *report.warnings, *([cond.warning] if cond.warning else [])],
+        warnings=[
+            *warnings,
+            *degenerate[:1],
+            *report.warnings,
+            *([cond.warning] if cond.warning else []),
+        ],
     )
     shown += [w for w in result["warnings"] if w not in shown and w not in report.warnings]
     ident = report.summary()
     if noise is not None:
         # Covariance of the identified parameters, Cramer-Rao bound and 95 % intervals, at the
-        # calibrated model (issue: uncertainty with noise weights).
+        # calibrated model (issue: uncertainty with noise weights); a robust fit's with its final
+        # IRLS weights, so down-weighted poses carry less information.
+        import numpy as np
+
         from .io import calibrated_arm_from_result
         from .uncertainty import analyze_uncertainty
 
@@ -255,6 +277,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
             noise,
             meas.measured,
             estimate=result_errors(result, arm),
+            weights=None if args.loss == "ls" else np.asarray(sol.weights),
         )
         result["uncertainty"] = unc.to_dict()
         ident = ident + "\n" + unc.summary()

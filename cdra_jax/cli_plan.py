@@ -21,13 +21,12 @@ from __future__ import annotations
 import argparse
 import csv
 import io
-import os
 import sys
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 from .cli_common import load_arm, standalone_main
+from .io.files import write_text_atomic
 from .pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE
 
 DEFAULT_NOISE_POS_MM = 0.08
@@ -113,22 +112,6 @@ def plan_csv_text(state_names: Sequence[str], states, comments: Sequence[str] = 
     return buf.getvalue()
 
 
-def _write_new(path: Path, text: str, force: bool) -> None:
-    if path.is_dir():
-        raise ValueError(f"{path}: is a folder; --out needs a file name")
-    if path.exists() and not force:
-        raise FileExistsError(f"{path}: file exists; pass --force to replace it")
-    fd, tmp = tempfile.mkstemp(dir=path.parent or Path("."), prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def run(args: argparse.Namespace) -> int:
     """Run ``plan-poses``; returns the exit code (0)."""
     import jax
@@ -177,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
         f"dR {float(exp_sel.expected_delta_R):.4g} rad",
         "measure the tool pose at each row and add measured.x/y/z and measured.rx/ry/rz columns",
     ]
-    _write_new(out, plan_csv_text(arm.state_names, sel.states, comments), args.force)
+    write_text_atomic(out, plan_csv_text(arm.state_names, sel.states, comments), force=args.force)
     print(
         f"selected {args.count} of {args.pool} poses by {args.criterion}: log det "
         f"{sel.log_det:.6g} (greedy {sel.log_det_greedy:.6g}, {sel.n_exchanges} exchanges), "

@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         matplotlib.use("Agg")
         from .plots_sweeps import plot_sweep_figure
 
-        plot_sweep_figure(table, path=args.plot)
+        plot_sweep_figure(table, path=args.plot, force=args.force)
         print(f"wrote {args.plot}")
     return 0
 

@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
     from . import plots, reproduction
-    from .io import default_arm
+    from .io import default_arm, save_figure_atomic, write_text_atomic
 
     sizes = FULL if args.full else SMALL
     seed = int(args.seed)
@@ -258,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
             "fig7_parameter_error.png": plots.parameter_error_figure(noise),
         }
         for name, fig in figures.items():
-            fig.savefig(out / name, dpi=120)
+            save_figure_atomic(fig, out / name, force=args.force, dpi=120)
     timings["total"], cpu["total"] = time.perf_counter() - t_start, time.process_time() - c_start
 
     emit("")
@@ -266,10 +266,12 @@ def run(args: argparse.Namespace) -> int:
         "time in s, JIT compilation included (wall / CPU of this process): "
         + ", ".join(f"{k} {v:.1f} / {cpu[k]:.1f}" for k, v in timings.items())
     )
-    (out / "report.txt").write_text("\n".join(report) + "\n", encoding="utf-8")
+    write_text_atomic(out / "report.txt", "\n".join(report) + "\n", force=args.force)
     summary = _summary(table, conv, noise, sizes, seed, {"wall": timings, "cpu": cpu})
-    (out / "summary.json").write_text(
-        json.dumps(summary, indent=1, default=_json_default) + "\n", encoding="utf-8"
+    write_text_atomic(
+        out / "summary.json",
+        json.dumps(summary, indent=1, default=_json_default) + "\n",
+        force=args.force,
     )
     print(f"wrote {', '.join(OUTPUT_FILES)} to {out.resolve()}")
     return 0

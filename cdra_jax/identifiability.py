@@ -44,7 +44,7 @@ from jax.typing import ArrayLike
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
-from .calibration.validation import MIN_POSES
+from .calibration.validation import MIN_POSES, require_finite_states
 
 
 @dataclass(frozen=True)
@@ -255,6 +255,25 @@ def readable_directions(
     return D.T, Q.T
 
 
+def generic_rank(
+    arm: Arm, m: int, noise: NoiseModel | None = None, *, rcond: float | None = None
+) -> int:
+    """The rank that ``m`` poses spread over the joint ranges give: what the model allows.
+
+    The stacked Jacobian at ``m`` module states drawn uniformly within the limits (a fixed
+    seed: generic states, rank-deficient only where the model is, e.g. 22 of 24 for the CDRA
+    with ``m >= 4``). A pose set whose :func:`analyze` rank is below it is degenerate (repeated
+    poses, a module that never moves) rather than the model being unidentifiable.
+    """
+    lim = np.asarray(arm.state_limits, dtype=float)
+    u = np.random.default_rng(0).uniform(size=(m, arm.dof))
+    q = lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
+    D = stacked_jacobian(arm, q, None, noise)
+    s = np.linalg.svd(D, compute_uv=False)
+    rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
+    return int(np.sum(s > rcond * s[0])) if s.size and s[0] > 0 else 0
+
+
 def analyze(
     arm: Arm,
     q: ArrayLike,
@@ -276,7 +295,8 @@ def analyze(
 
     Raises:
         ValueError: fewer than 4 poses (the paper's lower bound) without
-            ``allow_underdetermined``, or a state array of the wrong shape.
+            ``allow_underdetermined``, or a state array of the wrong shape or with a
+            non-finite entry.
     """
     q = np.asarray(q, dtype=float)
     if q.ndim != 2 or q.shape[1] != arm.dof:
@@ -284,6 +304,7 @@ def analyze(
             f"module states must have shape (m, {arm.dof}) with columns {arm.state_names}, "
             f"got {q.shape}"
         )
+    require_finite_states(arm, q)
     m = q.shape[0]
     if m < MIN_POSES and not allow_underdetermined:
         raise ValueError(

@@ -1,7 +1,8 @@
 """Figures of the paper's evidence (Figs. 5 and 7) from the data objects of :mod:`.reproduction`.
 
 Every function takes a study object and returns a :class:`matplotlib.figure.Figure` drawn on
-the Agg canvas; saving (``fig.savefig(path)``) or showing it is the caller's job. Nothing here
+the Agg canvas; saving (``cdra_jax.io.save_figure_atomic(fig, path)``, atomic and no overwrite
+without ``force``) or showing it is the caller's job. Nothing here
 touches pyplot or matplotlib's global state, so importing this module changes no backend and
 opens no window.
 """

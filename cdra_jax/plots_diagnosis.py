@@ -23,6 +23,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from .arm import Arm
+from .io.files import OutputExistsError, save_figure_atomic
 from .io.measurements import Measurements
 
 
@@ -114,7 +115,8 @@ def save_diagnosis_plots(
 ) -> Sequence[Path]:
     """Write the diagnosis figures (PNG) into ``folder`` (created if missing); returns paths.
 
-    Existing files are only replaced with ``force``.
+    Each file is written atomically (:func:`cdra_jax.io.files.save_figure_atomic`); existing
+    files are only replaced with ``force``, and without it none is written when one exists.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -122,11 +124,11 @@ def save_diagnosis_plots(
         "residual_vs_regressors.png": residual_vs_regressors_figure(arm, meas, diagnosis),
         "residual_per_pose.png": residual_per_pose_figure(diagnosis),
     }
-    out = []
-    for name, fig in figures.items():
-        path = folder / name
+    paths = [folder / name for name in figures]
+    for path in paths:  # all or none: check before writing the first
         if path.exists() and not force:
-            raise FileExistsError(f"{path}: file exists; refusing to overwrite it (pass --force)")
-        fig.savefig(path, dpi=110)
-        out.append(path)
-    return out
+            raise OutputExistsError(f"{path}: file exists; refusing to overwrite it (pass --force)")
+    return [
+        save_figure_atomic(fig, path, force=force, dpi=110)
+        for path, fig in zip(paths, figures.values(), strict=True)
+    ]

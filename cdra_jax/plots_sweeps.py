@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .io.files import save_figure_atomic
 from .sweeps import METRIC_UNITS, SweepTable
 
 _LINESTYLES = {"paper": "-", "weighted": "--", "lm": ":"}
@@ -92,9 +93,14 @@ def plot_sweep_figure(
     table: SweepTable,
     metrics: Sequence[str] = ("dp_heldout", "dR_heldout"),
     path: str | os.PathLike | None = None,
+    *,
+    force: bool = False,
     **kwargs,
 ):
     """One panel per metric (:func:`plot_sweep`); saved to ``path`` when given.
+
+    The file is written atomically and an existing one is only replaced with ``force``
+    (:func:`cdra_jax.io.files.save_figure_atomic`).
 
     Returns:
         The figure.
@@ -106,5 +112,5 @@ def plot_sweep_figure(
         plot_sweep(table, metric, ax=ax, **kwargs)
     fig.tight_layout()
     if path is not None:
-        fig.savefig(path, dpi=120)
+        save_figure_atomic(fig, path, force=force, dpi=120)
     return fig

@@ -70,6 +70,7 @@ from jax.typing import ArrayLike
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
+from .calibration.validation import require_finite_states
 from .simulation import StateSampler, sample_poses
 
 CRITERIA: tuple[str, ...] = ("i-opt", "d-opt", "o1")
@@ -360,6 +361,7 @@ def _check_pool(arm: Arm, pool: ArrayLike, name: str = "pool") -> np.ndarray:
             f"{name} must have shape (N, {arm.dof}) with columns {arm.state_names}, "
             f"got {pool.shape}"
         )
+    require_finite_states(arm, pool, name)
     return pool
 
 
@@ -414,7 +416,7 @@ def select_from_pool(
 
     Raises:
         ValueError: unknown criterion, no noise model for ``"i-opt"`` / ``"d-opt"``, ``m`` out
-            of range or a pool / reference of the wrong shape.
+            of range or a pool / reference of the wrong shape or with a non-finite state.
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")

@@ -46,7 +46,6 @@ import importlib.util
 import math
 import os
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -69,6 +68,7 @@ from .calibration import (
 )
 from .calibration.linear import default_rcond
 from .calibration.validation import MIN_POSES
+from .io.files import write_file_atomic
 from .simulation import StateSampler, simulate_trial
 
 SOLVERS: tuple[str, ...] = ("paper", "weighted", "lm")
@@ -230,7 +230,8 @@ class SweepTable:
                 cols = [_format_column(c, self.columns[c][block]) for c in COLUMNS]
                 w.writerows(zip(*cols, strict=True))
 
-        _atomic_write(path, write, force)
+        _prepare_folder(path)
+        write_file_atomic(path, write, force=force)
         return path
 
     def to_parquet(self, path: str | os.PathLike, *, force: bool = False) -> Path:
@@ -246,7 +247,8 @@ class SweepTable:
         table = pa.table({c: self.columns[c] for c in COLUMNS})
         table = table.replace_schema_metadata({k: str(v) for k, v in self.meta.items()})
         path = Path(path)
-        _atomic_write(path, lambda f: pq.write_table(table, f), force, binary=True)
+        _prepare_folder(path)
+        write_file_atomic(path, lambda f: pq.write_table(table, f), force=force, binary=True)
         return path
 
     def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
@@ -269,19 +271,10 @@ def _format_column(name: str, values: np.ndarray) -> list[str]:
     return [repr(float(v)) for v in values]
 
 
-def _atomic_write(path: Path, write: Callable, force: bool, binary: bool = False) -> None:
-    if path.exists() and not force:
-        raise FileExistsError(f"{path}: file exists; pass force=True (CLI: --force) to replace it")
+def _prepare_folder(path: Path) -> None:
+    """Create the table's folder (sweeps write into new result folders); the write itself goes
+    through :func:`cdra_jax.io.files.write_file_atomic` (atomic, no overwrite without force)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb" if binary else "w", newline=None if binary else "") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def read_sweep(path: str | os.PathLike) -> SweepTable:

@@ -18,6 +18,15 @@ so:
   ``D(q) F^+ D(q)^T``; the position error is ``[I, -hat(p)] dT`` (mm) and the world-frame
   orientation error is the rotational part ``w`` (rad).
 
+Robust fits. After :func:`~cdra_jax.calibration.calibrate_robust` pass its final IRLS weights
+``w_i`` (``weights=``). The covariance is then the weighted (IRLS) form
+``(D~^T W D~)^+``, ``W = diag(w_i I_6)``: pose ``i`` counts as measured with the noise
+``(s_pos / sqrt(w_i), s_rot / sqrt(w_i))``, the noise model of the last reweighted solve, so a
+down-weighted outlier carries (almost) no information and the intervals widen by what it no
+longer contributes. With all weights 1 it is the least-squares covariance. (This treats the
+weights as known; it is the sandwich ``A^+ B A^+`` of M-estimation with
+``A = B = D~^T W D~``, exact when the kept poses follow the stated noise.)
+
 The estimate's units are mixed (mm for ``v``, rad for ``w``), as in the paper; covariances are in
 mm^2, mm rad and rad^2 accordingly. Linearise at the calibrated model (``solution.frames``) with
 the measured tool poses for whitening to describe a finished calibration, or at the nominal model
@@ -42,6 +51,7 @@ from . import lie
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
+from .calibration.validation import require_finite_states
 from .identifiability import analyze as analyze_identifiability
 
 DEFAULT_CONFIDENCE = 0.95
@@ -212,17 +222,25 @@ def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseC
 
     Uses the unwhitened Jacobian ``D(q)`` of Eq. 8 at ``arm``: twist covariance
     ``D C D^T``; position error ``[I, -hat(p)] dT`` with ``p`` the model tool position.
+    Computed from a square-root factor ``C = L L^T`` (symmetric eigendecomposition, rounding
+    negatives clipped) as Gram matrices ``(D L)(D L)^T``, so variances are never negative: for a
+    nearly singular ``C`` (poses nearly the same) ``D C D^T`` formed directly can cancel to a
+    negative trace and a NaN RMS.
     """
     dtype = jnp.asarray(arm.frames).dtype
     q_eval = jnp.asarray(q_eval, dtype)
     tool, after = chain(arm.frames, module_poses(arm, q_eval))
     D = calibration_jacobian(after)  # (k, 6, n)
     C = jnp.asarray(covariance, dtype)
-    twist = jnp.einsum("...ai,...ij,...bj->...ab", D, C, D)
+    lam, U = jnp.linalg.eigh(0.5 * (C + jnp.swapaxes(C, -1, -2)))
+    L = U * jnp.sqrt(jnp.clip(lam, 0.0, None))[..., None, :]  # C = L L^T
+    DL = D @ L[..., None, :, :] if L.ndim > 2 else D @ L  # (k, 6, n)
+    twist = DL @ jnp.swapaxes(DL, -1, -2)
     p = lie.translation(tool)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), p.shape[:-1] + (3, 3))
     H = jnp.concatenate([eye, -lie.hat3(p)], axis=-1)  # (k, 3, 6)
-    position = jnp.einsum("...ai,...ij,...bj->...ab", H, twist, H)
+    HDL = H @ DL
+    position = HDL @ jnp.swapaxes(HDL, -1, -2)
     return PoseCovariance(twist=twist, position=position, rotation=twist[..., 3:, 3:])
 
 
@@ -273,6 +291,7 @@ class UncertaintyReport:
         expected_delta_p, expected_delta_R: ``sqrt(E[dp^2])``, ``sqrt(E[dR^2])`` over them.
         unidentifiable: the unidentifiable directions as text (from :mod:`.identifiability`).
         involved_in: per parameter, the unidentifiable directions it enters.
+        weights: per-pose IRLS weights of a robust fit the covariance uses, or ``None``.
     """
 
     param_names: tuple[str, ...]
@@ -292,6 +311,7 @@ class UncertaintyReport:
     eval_states: str
     unidentifiable: tuple[str, ...] = field(default=())
     involved_in: tuple[tuple[str, ...], ...] = field(default=())
+    weights: np.ndarray | None = None
 
     def interval(self, i: int) -> tuple[float, float] | None:
         """Confidence interval of parameter ``i`` (estimate +- z std; about 0 without an
@@ -324,7 +344,12 @@ class UncertaintyReport:
             params[name] = entry
         return {
             "method": "first-order covariance of the minimum-norm estimate, (D~^T D~)^+ "
-            "(= Cramer-Rao bound on identifiable combinations)",
+            "(= Cramer-Rao bound on identifiable combinations)"
+            if self.weights is None
+            else "first-order covariance of the robust estimate with its final IRLS weights, "
+            "(D~^T W D~)^+, W = diag(w_i I_6): pose i weighs as if measured with noise "
+            "s / sqrt(w_i)",
+            "weights": None if self.weights is None else [float(w) for w in self.weights],
             "units": "mm for v components, rad for w components",
             "noise": {"position_mm": self.noise[0], "rotation_rad": self.noise[1]},
             "confidence": self.confidence,
@@ -352,7 +377,8 @@ class UncertaintyReport:
         head = f"{'parameter':<16} {'estimate':>12} {'std':>11}  {pct} interval"
         lines = [
             f"uncertainty: rank {self.rank} of {len(self.param_names)} from {self.n_poses} poses, "
-            f"noise {self.noise[0]:g} mm / {self.noise[1]:g} rad",
+            f"noise {self.noise[0]:g} mm / {self.noise[1]:g} rad"
+            + ("" if self.weights is None else ", with the robust fit's final weights"),
             head,
             "-" * len(head) + "-" * 14,
         ]
@@ -382,6 +408,7 @@ def analyze_uncertainty(
     q_eval: ArrayLike | None = None,
     confidence: float = DEFAULT_CONFIDENCE,
     rcond: float | None = None,
+    weights: ArrayLike | None = None,
 ) -> UncertaintyReport:
     """Parameter intervals and predicted-pose accuracy of a calibration from ``q (m, dof)``.
 
@@ -395,9 +422,14 @@ def analyze_uncertainty(
         q_eval: states at which to predict the tool-pose accuracy (default: ``q``).
         confidence: interval level (0.95: +-1.96 std).
         rcond: singular-value cut-off (default: the solvers').
+        weights: ``(m,)`` final IRLS weights of a robust fit (``RobustSolution.weights``):
+            the covariance is then ``(D~^T W D~)^+`` (module docstring); ``None`` or all ones:
+            least squares.
 
     Raises:
-        ValueError: no noise model, a bad confidence, or states of the wrong shape.
+        ValueError: no noise model, a bad confidence, states of the wrong shape or not finite,
+            or weights
+            that are not ``m`` finite positive numbers.
     """
     if noise is None:
         raise ValueError("analyze_uncertainty needs a NoiseModel (position_mm, rotation_rad)")
@@ -408,13 +440,31 @@ def analyze_uncertainty(
             f"module states must have shape (m, {arm.dof}) with columns {arm.state_names}, "
             f"got {q.shape}"
         )
+    require_finite_states(arm, q)
     n = arm.n_params
     est = None
     if estimate is not None:
         est = np.asarray(estimate, dtype=float).reshape(-1)
         if est.shape != (n,):
             raise ValueError(f"estimate must hold {n} values ({arm.param_names}), got {est.size}")
-    unc = parameter_covariance(arm, q, noise, measured, rcond=rcond)
+    w = None
+    cov_noise = noise
+    if weights is not None:
+        w = np.asarray(weights, dtype=float).reshape(-1)
+        if w.shape != (q.shape[0],):
+            raise ValueError(f"weights: expected one per pose ({q.shape[0]}), got {w.size}")
+        bad = np.flatnonzero(~(np.isfinite(w) & (w > 0)))
+        if bad.size:
+            raise ValueError(
+                f"weights must be finite and positive, got {w[bad[0]]:g} for pose {bad[0]}"
+            )
+        # The robust fit's last solve: pose i with the noise (s_pos, s_rot) / sqrt(w_i).
+        sw = np.sqrt(w)
+        cov_noise = NoiseModel(
+            position_mm=np.asarray(noise.position_mm, dtype=float) / sw,
+            rotation_rad=np.asarray(noise.rotation_rad, dtype=float) / sw,
+        )
+    unc = parameter_covariance(arm, q, cov_noise, measured, rcond=rcond)
     cov = np.asarray(unc.covariance)
     ident = np.asarray(unc.identifiable(np.eye(n)))
     ident_report = analyze_identifiability(
@@ -449,6 +499,7 @@ def analyze_uncertainty(
         else f"{np.shape(q_eval)[0]} given states",
         unidentifiable=ident_report.unidentifiable,
         involved_in=involved,
+        weights=w,
     )
 
 

@@ -99,6 +99,15 @@ def test_degenerate_pose_sets_warn_and_give_the_min_norm_answer(files, capsys):
     err, printed = _errors(capsys)
     assert "rank 6 of 24 parameters" in printed and printed.count("  unidentifiable: ") == 18
     assert any("11 pose(s) repeat the module state" in e for e in err)
+    # degenerate data: on stderr as warnings (and in the JSON), not only in the summary
+    assert (
+        "warning: degenerate pose set: rank 6 of 24 parameters from 12 poses, where as many "
+        "poses spread over the joint ranges give 22; 16 more combination(s) are lost"
+    ) in "\n".join(err)
+    assert "warning: 18 parameter combination(s) cannot be identified from tool poses; " in (
+        "\n".join(err)
+    )
+    assert any(w.startswith("degenerate pose set: rank 6 of 24") for w in r["warnings"])
 
     elbow = p.q.copy()
     elbow[:, 3] = 1.1
@@ -107,7 +116,10 @@ def test_degenerate_pose_sets_warn_and_give_the_min_norm_answer(files, capsys):
     r = json.loads((d / "elbow.json").read_text())
     assert r["identifiability"]["rank"] == 18 and r["final"]["delta_p_mm"] < 1e-8
     assert all(np.isfinite(v) for f in r["frames"].values() for v in f["error_twist"].values())
-    assert "rank 18 of 24" in _errors(capsys)[1]
+    err, printed = _errors(capsys)
+    assert "rank 18 of 24" in printed
+    assert "warning: module 'elbow' never moves in this pose set (constant state)" in "\n".join(err)
+    assert any(e.startswith("warning: degenerate pose set: rank 18 of 24") for e in err)
 
     near = p.q[:1] + 0.003 * np.random.default_rng(1).standard_normal((M, 7))
     data = _write(d, "near.csv", p, near, np.asarray(tool_pose(actual, near)))
@@ -177,6 +189,38 @@ def _skewed(spec):
 
 XYZ = ("measured.x", "measured.y", "measured.z")
 RV = ("measured.rx", "measured.ry", "measured.rz")
+QUAT = ("measured.qw", "measured.qx", "measured.qy", "measured.qz")
+
+
+def _quaternion_text(_rotvec_text: str) -> str:
+    """The same poses with unit quaternions (w, x, y, z) instead of rotation vectors."""
+    p = problem(0)
+    return dumps_measurements(Measurements.from_arrays(p.arm, p.q, p.T, orientation="quaternion"))
+
+
+def _scaled_row(text: str, row: int, columns, factor) -> str:
+    lines = text.splitlines(keepends=True)
+    header = lines[0].rstrip("\n").split(",")
+    cells = lines[row].rstrip("\n").split(",")
+    for c in columns:
+        cells[header.index(c)] = repr(float(cells[header.index(c)]) * factor)
+    lines[row] = ",".join(cells) + "\n"
+    return "".join(lines)
+
+
+def _scalar_last(text: str) -> str:
+    """Quaternion columns holding (x, y, z, w) under the header (w, x, y, z)."""
+    lines = text.splitlines(keepends=True)
+    header = lines[0].rstrip("\n").split(",")
+    j = [header.index(c) for c in QUAT]
+    for k in range(1, len(lines)):
+        cells = lines[k].rstrip("\n").split(",")
+        w, x, y, z = (cells[i] for i in j)
+        for i, v in zip(j, (x, y, z, w), strict=True):
+            cells[i] = v
+        lines[k] = ",".join(cells) + "\n"
+    return "".join(lines)
+
 
 # name -> (csv edit | None, model edit | None, extra argv, expected parts of the error line)
 FAILURES = {
@@ -272,6 +316,51 @@ FAILURES = {
         [],
         ["data.csv, column 'measured.rx'", "look like degrees", "multiply by pi/180?"],
     ),
+    "positions in centimetres": (
+        lambda t: _scaled(t, XYZ, 0.1),
+        None,
+        [],
+        ["data.csv, column 'measured.x'", "look like centimetres", "multiply by 10?"],
+    ),
+    "positions in inches": (
+        lambda t: _scaled(t, XYZ, 1 / 25.4),
+        None,
+        [],
+        ["column 'measured.x'", "look like inches", "multiply by 25.4?"],
+    ),
+    "positions in micrometres (or a model in metres)": (
+        lambda t: _scaled(t, XYZ, 1e3),
+        None,
+        [],
+        ["column 'measured.x'", "look like micrometres (or the model file is in metres)"],
+    ),
+    "positions off by another factor": (
+        lambda t: _scaled(t, XYZ, 3.0),
+        None,
+        [],
+        ["column 'measured.x'", "times the", "wrong units (the file must be in mm)"],
+    ),
+    "quaternion not unit": (
+        lambda t: _scaled_row(_quaternion_text(t), 4, QUAT, 1.001),
+        None,
+        [],
+        [
+            "data.csv, line 5, column 'measured.qw': quaternion (measured.qw, .qx, .qy, .qz) = (",
+            "is not unit: its norm 1.001 differs from 1 by 0.001 (tolerance 1e-06)",
+        ],
+    ),
+    "quaternions written scalar-last": (
+        lambda t: _scalar_last(_quaternion_text(t)),
+        None,
+        [],
+        ["column 'measured.qw'", "look scalar-last (x, y, z, w)", "put the scalar part w first?"],
+    ),
+    "inverse rotation": (
+        lambda t: _scaled(t, RV, -1.0),
+        None,
+        [],
+        ["column 'measured.rx'", "look like the inverse rotation", "negate the rotation vector"],
+    ),
     "joint angles in degrees": (
         lambda t: _scaled(t, ["elbow.q"], 180 / np.pi),
         None,
@@ -308,3 +397,120 @@ def test_failure_modes_give_one_error_line_and_exit_1(files, tmp_path, capsys, c
     for part in expected:
         assert part in err[0], (case, err[0])
     assert exists.read_text() == "{}" and not (tmp_path / "r.json").exists()
+
+
+# --------------------------------------------------------------------------- warning rows
+
+
+def _text(p, q, T) -> str:
+    return dumps_measurements(Measurements.from_arrays(p.arm, q, T))
+
+
+def _typo(p) -> str:
+    T = p.T.copy()
+    T[4, 0, 3] += 400.0  # one row's measured.x off by 400 mm
+    return _text(p, p.q, T)
+
+
+def _beyond_limits(p) -> str:
+    from cdra_jax import tool_pose
+
+    q, T = p.q.copy(), p.T.copy()
+    lo, hi = p.arm.module("shoulder").limits[0]
+    q[6, 0] = hi + 0.2 * (hi - lo)
+    T[6] = np.asarray(tool_pose(p.arm.with_frames(p.actual_frames), q))[6]
+    return _text(p, q, T)
+
+
+def _offset(p) -> str:
+    T = p.T.copy()
+    T[:, 2, 3] += 300.0  # measuring device not registered to the world frame
+    return _text(p, p.q, T)
+
+
+def _beyond_pi(p) -> str:
+    """Row 4's rotation vector as the same rotation by angle + 2 pi: a component beyond pi."""
+    text = _text(p, p.q, p.T)
+    header = text.splitlines()[0].split(",")
+    rv = np.array([float(text.splitlines()[4].split(",")[header.index(c)]) for c in RV])
+    rv = rv * (1.0 + 2.0 * np.pi / np.linalg.norm(rv))
+    for c, v in zip(RV, rv, strict=True):
+        text = _csv_edit(text, 4, c, repr(float(v)))
+    return text
+
+
+def _turned_orientations(p) -> str:
+    T = p.T.copy()
+    c, s = np.cos(1.0), np.sin(1.0)
+    T[:, :3, :3] = T[:, :3, :3] @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return _text(p, p.q, T)
+
+
+TYPO = "warning: pose 'p05' (line 6), column 'measured.x': measured position 4"
+
+# name -> (data, extra argv, exit code, expected stderr lines (prefixes))
+WARNINGS = {
+    "a typo, least squares": (
+        _typo,
+        [],
+        cli.EXIT_NOT_CONVERGED,
+        [TYPO, "warning: not converged: the calibration did not converge"],
+    ),
+    "a typo, robust loss": (
+        _typo,
+        ["--loss", "cauchy"],
+        cli.EXIT_OK,
+        [TYPO, "warning: 1 pose(s) look like outliers (z > 1.93): p05 (z = "],
+    ),
+    "joint state outside the limits": (
+        _beyond_limits,
+        [],
+        cli.EXIT_OK,
+        [
+            "warning: column 'shoulder.rx': 1 of 12 poses outside the model's limits [-1, 1] "
+            "rad (first: pose 'p07' (line 8), 1.4); used as given"
+        ],
+    ),
+    "device not registered": (
+        _offset,
+        [],
+        cli.EXIT_OK,
+        ["warning: measured positions are a median 293.4 mm from the model's predictions"],
+    ),
+    "rotation-vector component beyond pi": (
+        _beyond_pi,
+        [],
+        cli.EXIT_OK,
+        [
+            "warning: pose 'p04' (line 5): a rotation-vector component beyond pi (measured.rx, "
+            "measured.ry, measured.rz); rotation vectors are in rad, degrees?"
+        ],
+    ),
+    "orientations far from the model's": (
+        _turned_orientations,
+        [],
+        cli.EXIT_OK,
+        [
+            "warning: measured orientations differ from the model's predictions by a median "
+            "1.02 rad (more than 0.5): check the orientation convention"
+        ],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(WARNINGS))
+def test_warning_rows_give_warning_lines_and_write_the_result(files, tmp_path, capsys, case):
+    _, p = files
+    make, extra, code, expected = WARNINGS[case]
+    data, out = tmp_path / "data.csv", tmp_path / "r.json"
+    data.write_text(make(p))
+    assert _run("calibrate", "--data", data, "--out", out, *extra) == code
+    err, _ = _errors(capsys)
+    assert len(err) == len(expected), err
+    for line, prefix in zip(err, expected, strict=True):
+        assert line.startswith(prefix), (case, line)
+    r = json.loads(out.read_text())  # written in every case, converged or not
+    assert r["converged"] is (code == cli.EXIT_OK)
+    for line in err:
+        if not line.startswith("warning: not converged"):
+            assert line.removeprefix("warning: ") in r["warnings"]

@@ -4,8 +4,13 @@ unexpected exception type.
 
 Strategies: SE(3) elements (near the identity, generic, near and beyond pi), arms (random K,
 module kinds, frames, axes, limits), measurement CSV text (random column subsets and orders,
-random cells, junk lines), mutated model TOML, frame-error and result mappings, and random
-measured poses fed to the compiled solvers. Set ``CDRA_FUZZ_EXAMPLES`` to run more examples.
+random cells, junk lines), mutated model TOML, frame-error and result mappings, random
+measured poses fed to the compiled solvers (paper, LM, robust), degenerate and non-finite pose
+sets fed to the uncertainty analysis and the pose selection, random cable lengths, structure
+matrices, loads and states for the CDPM modules (forward kinematics, tension closure, statics),
+and noise levels, sweep tables and sweep settings. Each test reuses one compiled program (fixed
+shapes; noise levels as arrays, not static floats). Set ``CDRA_FUZZ_EXAMPLES`` to run more
+examples.
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ import io
 import json
 import math
 import os
+import re
+import tempfile
 
 import equinox as eqx
 import jax
@@ -24,12 +31,20 @@ import numpy as np
 import pytest
 import tomli_w
 from _robust_data import M, problem
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from cdra_jax import lie
 from cdra_jax.arm import Arm, forward_kinematics, prismatic, revolute, spherical
-from cdra_jax.calibration import RESULTS, Cauchy, Huber, calibrate_paper, calibrate_robust
+from cdra_jax.calibration import (
+    RESULTS,
+    Cauchy,
+    Huber,
+    NoiseModel,
+    calibrate_lm,
+    calibrate_paper,
+    calibrate_robust,
+)
 from cdra_jax.conditioning import conditioning
 from cdra_jax.identifiability import analyze
 from cdra_jax.io import (
@@ -47,6 +62,21 @@ from cdra_jax.io import (
     loads_result,
     rigid_transform_problem,
 )
+from cdra_jax.modules import (
+    CableFKResult,
+    TensionResult,
+    cable_forward_kinematics,
+    cable_lengths,
+    distribute_tensions,
+    holding_tensions,
+    hull_margin,
+    tension_closure,
+)
+from cdra_jax.modules.statics import module_floor
+from cdra_jax.pose_selection import select_from_pool
+from cdra_jax.sweeps import COLUMNS as SWEEP_COLUMNS
+from cdra_jax.sweeps import SweepTable, parse_noise_levels, read_sweep, run_sweep
+from cdra_jax.uncertainty import analyze_uncertainty
 
 N = int(os.environ.get("CDRA_FUZZ_EXAMPLES", "0"))
 
@@ -445,6 +475,7 @@ def test_mutated_result_files_load_or_raise_result_file_error(spec):
 
 paper = eqx.filter_jit(calibrate_paper)
 robust = eqx.filter_jit(calibrate_robust)
+lm = eqx.filter_jit(calibrate_lm)
 
 
 @st.composite
@@ -473,6 +504,7 @@ def test_solvers_never_report_success_with_nan(T):
     finite_in = bool(np.all(np.isfinite(T)))
     for sol in (
         paper(p.arm, p.q, T, throw=False),
+        lm(p.arm, p.q, T, throw=False),
         robust(p.arm, p.q, T, None, loss="cauchy", solver="paper", throw=False).solution,
     ):
         frames_ok = bool(np.all(np.isfinite(np.asarray(sol.frames))))
@@ -491,3 +523,272 @@ def test_huge_rotation_vector_is_a_named_error():
     row = ["p0" if c == "pose" else huge if c == "measured.rx" else "0.1" for c in COLUMNS]
     with pytest.raises(MeasurementFileError, match=r"d\.csv.*measured\.rx.*above the limit"):
         loads_measurements(header + "\n" + ",".join(row) + "\n", ARM, source="d.csv")
+
+
+# --------------------------------------------------------------------------- uncertainty, poses
+
+NOISE_LEVELS = st.tuples(st.floats(1e-6, 1e3), st.floats(1e-9, 1.0))
+
+
+def _noise(levels) -> NoiseModel:
+    # Arrays, not Python floats: equinox treats floats as static, which would compile again.
+    return NoiseModel(jnp.asarray(levels[0]), jnp.asarray(levels[1]))
+
+
+@st.composite
+def state_sets(draw, m: int):
+    """``m`` CDRA states: spread, repeated, far beyond the limits, nearly equal, a state entry
+    that never moves, or with a NaN / inf entry."""
+    lim = ARM.state_limits
+    rng = np.random.default_rng(draw(st.integers(0, 2**31 - 1)))
+    q = lim[:, 0] + rng.uniform(size=(m, ARM.dof)) * (lim[:, 1] - lim[:, 0])
+    kind = draw(st.sampled_from(["spread", "repeated", "beyond", "near", "fixed", "nonfinite"]))
+    if kind == "repeated":
+        q[:] = q[0]
+    elif kind == "beyond":
+        q *= draw(st.floats(1.0, 100.0))
+    elif kind == "near":
+        q = q[0] + 1e-7 * rng.standard_normal(q.shape)
+    elif kind == "fixed":
+        q[:, draw(st.integers(0, ARM.dof - 1))] = 0.5
+    elif kind == "nonfinite":
+        q[draw(st.integers(0, m - 1)), draw(st.integers(0, ARM.dof - 1))] = draw(
+            st.sampled_from([np.nan, np.inf, -np.inf])
+        )
+    return q
+
+
+@fuzz(8)
+@given(
+    state_sets(8),
+    NOISE_LEVELS,
+    st.one_of(st.none(), st.lists(st.floats(1e-8, 1.0), min_size=8, max_size=8)),
+)
+def test_uncertainty_is_finite_or_names_the_bad_state(q, levels, weights):
+    try:
+        r = analyze_uncertainty(ARM, q, _noise(levels), weights=weights)
+    except ValueError as e:
+        assert not np.all(np.isfinite(q)), e
+        assert re.search(r"module states must be finite: row \d+, column '[a-z.]+' is", str(e))
+        return
+    assert np.all(np.isfinite(r.covariance)) and np.all(r.std >= 0) and 0 <= r.rank <= 24
+    assert np.isfinite(r.expected_delta_p) and np.isfinite(r.expected_delta_R)
+    json.dumps(r.to_dict(), allow_nan=False)  # the result file's entry has no NaN or inf
+    assert "nan" not in r.summary()
+
+
+@fuzz(4)
+@given(state_sets(24), NOISE_LEVELS)
+def test_pose_selection_picks_distinct_poses_or_names_the_bad_state(pool, levels):
+    # The default i-opt runs both the determinant-lemma (D-optimal start) and the Woodbury
+    # (I) passes; m is static, so it stays 5. Each rank of the pool compiles the passes once
+    # (they work in the identifiable subspace), hence few examples.
+    try:
+        sel = select_from_pool(ARM, pool, 5, _noise(levels))
+    except ValueError as e:
+        assert not np.all(np.isfinite(pool)), e
+        assert re.search(r"pool must be finite: row \d+, column '[a-z.]+' is", str(e))
+        return
+    idx = sel.indices.tolist()
+    assert len(set(idx)) == 5 and all(0 <= i < 24 for i in idx)
+    np.testing.assert_array_equal(sel.states, pool[sel.indices])
+    assert 0 <= sel.rank <= 24 and np.isfinite(sel.o1) and sel.o1 >= 0
+    assert np.isfinite(sel.prediction_rms) and sel.prediction_rms >= 0
+    assert np.isfinite(sel.log_det) or sel.rank == 0
+
+
+# --------------------------------------------------------------------------- CDPM modules
+
+_fk = jax.jit(cable_forward_kinematics)
+_lengths = jax.jit(cable_lengths)
+_closure = jax.jit(tension_closure)
+_margin = jax.jit(hull_margin)
+_distribute = jax.jit(distribute_tensions)
+_holding = eqx.filter_jit(holding_tensions)
+
+cable_cells = st.one_of(
+    st.floats(-1e3, 1e3),
+    st.floats(1e6, 1e15),
+    st.sampled_from([0.0, -0.0, np.nan, np.inf, -np.inf]),
+)
+
+
+@fuzz(10)
+@given(
+    st.lists(cable_cells, min_size=24, max_size=24),
+    st.lists(st.floats(-1.0, 1.0), min_size=12, max_size=12),
+    st.floats(0.0, 50.0),
+)
+def test_cable_forward_kinematics_reports_every_row(junk, states, noise):
+    """Rows 0-3 random lengths, rows 4-7 lengths of shoulder states plus noise: one code each,
+    a finite state when successful, ``nonfinite`` exactly for non-finite input."""
+    shoulder = ARM.module("shoulder")
+    exact = np.asarray(_lengths(shoulder, jnp.asarray(np.reshape(states, (4, 3)))))
+    L = np.concatenate([np.reshape(junk, (4, 6)), exact + noise])
+    sol = _fk(shoulder, jnp.asarray(L))
+    codes = np.asarray(sol.result._value)
+    assert set(codes.tolist()) <= set(range(len(CableFKResult._name_to_item)))
+    nonfinite = ~np.all(np.isfinite(L), axis=1)
+    np.testing.assert_array_equal(codes == int(CableFKResult.nonfinite._value), nonfinite)
+    ok = codes == int(CableFKResult.successful._value)
+    assert np.all(np.isfinite(np.asarray(sol.state)[ok]))
+    assert np.all(np.asarray(sol.residual_rms)[ok] <= 0.1)
+
+
+@fuzz(15)
+@given(
+    st.lists(
+        st.one_of(st.floats(-1e3, 1e3), st.just(0.0), st.just(np.nan)), min_size=18, max_size=18
+    ),
+    st.lists(st.floats(-1e4, 1e4), min_size=3, max_size=3),
+    st.floats(0.0, 100.0),
+)
+@example(A=[0.0] * 18, wrench=[0.0, 0.0, 1.0], floor=0.0)  # all cables through the centre
+def test_tension_closure_margin_and_distribution_agree(A, wrench, floor):
+    A = np.reshape(A, (3, 6))
+    closure = bool(_closure(A))
+    margin = float(_margin(A))
+    sol = _distribute(A, np.asarray(wrench), floor)
+    code = int(sol.result._value)
+    assert 0 <= code < len(TensionResult._name_to_item)
+    if not np.all(np.isfinite(A)):
+        assert code == int(TensionResult.nonfinite._value) and not closure
+        return
+    assert np.isfinite(margin)
+    if abs(margin) > 1e-9 * max(np.abs(A).max(), 1.0):
+        assert closure == (margin > 0)
+    if code == int(TensionResult.successful._value):
+        t = np.asarray(sol.tensions)
+        assert np.all(np.isfinite(t)) and np.all(t >= floor - 1e-9 * max(floor, 1.0))
+        err = np.linalg.norm(A @ t - np.asarray(wrench))
+        assert err <= 1e-6 * (1.0 + np.linalg.norm(A) * np.linalg.norm(t) + np.linalg.norm(wrench))
+
+
+@fuzz(8)
+@given(state_sets(8), st.floats(0.0, 1e3))
+def test_holding_tensions_are_finite_or_flagged(q, payload):
+    """Statics: gravity loads (with payload) and the tension distribution of every module."""
+    payload = jnp.asarray(payload)  # an array: one compile for every payload
+    sols = _holding(ARM, jnp.asarray(q), payload)
+    assert set(sols) == {"shoulder", "elbow", "wrist"}
+    rows = np.all(np.isfinite(q), axis=1)
+    for name, sol in sols.items():
+        codes = np.asarray(sol.result._value)
+        assert set(codes.tolist()) <= set(range(len(TensionResult._name_to_item)))
+        assert np.all(codes[~rows] == int(TensionResult.nonfinite._value))
+        ok = codes == int(TensionResult.successful._value)
+        t = np.asarray(sol.tensions)[ok]
+        assert np.all(np.isfinite(t)) and np.all(t >= module_floor(ARM.module(name)) - 1e-6)
+        assert np.all(np.isfinite(np.asarray(sol.residual)[ok]))
+
+
+# --------------------------------------------------------------------------- sweeps
+
+levels_in = st.lists(
+    st.one_of(
+        st.floats(0.0, 10.0), st.just(0.0), st.floats(-1.0, 0.0), st.sampled_from([np.nan, np.inf])
+    ),
+    min_size=0,
+    max_size=3,
+)
+
+
+@fuzz(40)
+@given(levels_in, levels_in)
+def test_noise_levels_are_finite_pairs_or_a_value_error(positions, rotations):
+    try:
+        levels = parse_noise_levels(positions, rotations)
+    except ValueError as e:
+        assert str(e)
+        return
+    assert len(levels) == len(positions) >= 1
+    for sp, sr in levels:
+        assert math.isfinite(sp) and math.isfinite(sr) and sp >= 0 and sr >= 0
+        assert (sp == 0) == (sr == 0)
+
+
+def _sweep_csv() -> str:
+    n = 2
+    cols = {c: np.zeros(n) for c in SWEEP_COLUMNS}
+    cols.update(
+        m=np.full(n, 5),
+        trial=np.arange(n),
+        seed=np.zeros(n, int),
+        iterations=np.full(n, 3),
+        rank=np.full(n, 22),
+        solver=np.array(["paper", "lm"], dtype=object),
+        result=np.array(["successful", "successful"], dtype=object),
+        converged=np.ones(n, bool),
+    )
+    with tempfile.TemporaryDirectory() as d:
+        return SweepTable(cols, {"seed": "0"}).to_csv(os.path.join(d, "t.csv")).read_text()
+
+
+SWEEP_CSV = _sweep_csv()
+
+
+@fuzz(30)
+@given(st.data())
+def test_mutated_sweep_tables_read_or_raise_value_error(tmp_path_factory, data):
+    lines = SWEEP_CSV.splitlines()
+    for _ in range(data.draw(st.integers(1, 3))):
+        k = data.draw(st.integers(0, len(lines) - 1))
+        cells = lines[k].split(",")
+        j = data.draw(st.integers(0, len(cells) - 1))
+        cells[j] = data.draw(
+            st.one_of(
+                st.sampled_from(["", "nan", "inf", "x", "1.5", "-1", "true", "maybe", "1,2"]),
+                st.text(max_size=5),
+            )
+        )
+        lines[k] = ",".join(cells)
+    if data.draw(st.booleans()):
+        lines = lines[: data.draw(st.integers(0, len(lines)))]
+    path = tmp_path_factory.mktemp("sweep") / "t.csv"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    try:
+        table = read_sweep(path)
+    except ValueError as e:
+        assert str(path) in str(e)
+        return
+    assert set(table.columns) == set(SWEEP_COLUMNS)
+    assert len({len(v) for v in table.columns.values()}) == 1
+
+
+# The cell of tests/test_sweeps.py (m = 5, "weighted", chunk 4, 10 held-out states): compiled
+# once per process, so in a whole-suite run the sweeps below cost no compile.
+SWEEP_CELL = dict(solvers=["weighted"], chunk=4, m_verify=10, progress=False)
+
+
+@fuzz(3)
+@given(
+    st.lists(st.tuples(st.floats(1e-4, 50.0), st.floats(1e-6, 0.5)), min_size=1, max_size=2),
+    st.integers(0, 2**31 - 1),
+    st.integers(1, 2),
+)
+def test_sweep_rows_are_finite_when_converged(levels, seed, trials):
+    t = run_sweep(ARM, levels, [5], trials=trials, seed=seed, **SWEEP_CELL)
+    assert len(t) == len(levels) * trials
+    conv = np.asarray(t["converged"])
+    for c in ("dp_fit", "dR_fit", "dp_heldout", "dR_heldout", "param_err"):
+        v = np.asarray(t[c], dtype=float)
+        assert np.all(np.isfinite(v[conv])) and np.all(v[conv] >= 0), c
+    assert set(t["result"][~conv]) <= set(RESULTS._name_to_item) - {"successful"}
+
+
+BAD_SWEEPS = {
+    "negative noise": ([(-1.0, 0.1)], [5], ["paper"], {}, "non-negative"),
+    "one zero std": ([(0.1, 0.0)], [5], ["paper"], {}, "both are zero"),
+    "weighted without noise": ([(0.0, 0.0)], [5], ["weighted"], {}, "needs a noise model"),
+    "too few poses": ([(0.1, 0.1)], [3], ["paper"], {}, "below the paper's minimum"),
+    "unknown solver": ([(0.1, 0.1)], [5], ["gn"], {}, "unknown solver"),
+    "no trials": ([(0.1, 0.1)], [5], ["paper"], {"trials": 0}, "must be >= 1"),
+    "no pose count": ([(0.1, 0.1)], [], ["paper"], {}, "at least one pose count"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_SWEEPS))
+def test_bad_sweep_settings_raise_value_error_before_any_work(case):
+    levels, counts, solvers, kwargs, match = BAD_SWEEPS[case]
+    with pytest.raises(ValueError, match=match):
+        run_sweep(ARM, levels, counts, solvers, progress=False, **kwargs)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,7 +31,9 @@ from cdra_jax.calibration import (
     whitening,
 )
 from cdra_jax.calibration.robust import unit_residuals
+from cdra_jax.io import result_to_dict
 from cdra_jax.simulation import add_measurement_noise
+from cdra_jax.uncertainty import analyze_uncertainty, whitened_jacobian
 
 # Array-valued stds: a different noise level does not recompile the solvers.
 NOISE_ARR = NoiseModel(jnp.asarray(NOISE.position_mm), jnp.asarray(NOISE.rotation_rad))
@@ -174,6 +178,50 @@ def test_errors_are_against_the_nominal_frames_and_histories_count_solves(huber_
     assert np.all(np.isfinite(np.asarray(s.delta_p[: k + 1])))
     assert np.all(np.isnan(np.asarray(s.delta_p[k + 1 :])))
     assert np.asarray(s.step_norm)[k - 1] < np.asarray(s.step_norm)[0]
+
+
+def test_uncertainty_of_a_robust_fit_uses_its_final_weights(huber_fit):
+    """The covariance is (D~^T W D~)^+ with the IRLS weights: the down-weighted outliers carry
+    (almost) no information, so the stds grow; with all weights 1 it is least squares'."""
+    p, r = huber_fit
+    at = p.arm.with_frames(r.frames)
+    w = np.asarray(r.weights)
+    plain = analyze_uncertainty(at, p.q, NOISE, p.T_bad)
+    robust_unc = analyze_uncertainty(at, p.q, NOISE, p.T_bad, weights=w)
+    ones = analyze_uncertainty(at, p.q, NOISE, p.T_bad, weights=np.ones(M))
+    np.testing.assert_allclose(ones.covariance, plain.covariance, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(ones.std, plain.std)
+    ident = plain.identifiable
+    assert np.array_equal(robust_unc.identifiable, ident)
+    assert np.all(robust_unc.std[ident] >= plain.std[ident] * (1 - 1e-9))
+    assert np.max(robust_unc.std[ident] / plain.std[ident]) > 1.05  # two poses of 12 lost
+    # oracle: the pseudo-inverse of the weighted information sum_i w_i D~_i^T D~_i
+    D = np.asarray(eqx.filter_jit(whitened_jacobian)(at, p.q, NOISE, p.T_bad)).reshape(M, 6, -1)
+    F = np.einsum("i,iak,ial->kl", w, D, D)
+    oracle = np.linalg.pinv(F, rcond=1e-8)
+    scale = np.sqrt(np.outer(np.diag(oracle), np.diag(oracle)))  # compare as correlations
+    np.testing.assert_allclose(robust_unc.covariance / scale, oracle / scale, atol=1e-8)
+    np.testing.assert_allclose(robust_unc.std, np.sqrt(np.diag(oracle)), rtol=1e-8)
+    d = robust_unc.to_dict()
+    assert d["weights"] == pytest.approx(list(w)) and "IRLS weights" in d["method"]
+    assert plain.to_dict()["weights"] is None
+    with pytest.raises(ValueError, match="weights must be finite and positive, got 0 for pose 3"):
+        analyze_uncertainty(at, p.q, NOISE, p.T_bad, weights=np.where(np.arange(M) == 3, 0, 1))
+
+
+def test_least_squares_with_too_optimistic_noise_flags_most_poses_and_says_why(huber_fit):
+    """The failure-table row 'many large residuals at a least-squares fit' (the CLI needs a
+    noise model for it; checked here on the result dict the CLI writes)."""
+    p, _ = huber_fit
+    fit = paper(p.arm, p.q, p.T, NOISE_ARR, throw=False)  # clean data, stated noise 0.08 mm
+    optimistic = NoiseModel(jnp.asarray(0.001), jnp.asarray(1e-5))  # ... but 80x smaller
+    ids = [f"p{i + 1:02d}" for i in range(M)]
+    r = result_to_dict(p.arm, fit, p.q, p.T, noise=optimistic, identifiability={}, pose_ids=ids)
+    (w,) = r["warnings"]
+    assert re.match(r"12 of 12 poses have standardized residuals above 1.93 \(p\d\d \(z = ", w)
+    assert "and 7 more): more than a few bad measurements explain; the noise model may be too " in w
+    assert w.endswith("(a robust loss, --loss huber, tells these apart)")
+    assert result_to_dict(p.arm, fit, p.q, p.T, noise=NOISE, identifiability={})["warnings"] == []
 
 
 @pytest.fixture(scope="module")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -45,3 +46,18 @@ def check_problem(
     if m < 1:
         raise ValueError("no measured poses given")
     return q, measured
+
+
+def require_finite_states(arm: Arm, q: np.ndarray, name: str = "module states") -> None:
+    """Host-side check that the states ``q (m, dof)`` are finite (the analyses' SVDs would
+    otherwise fail with numpy's unnamed "SVD did not converge").
+
+    Raises:
+        ValueError: naming the first non-finite entry (row and state name).
+    """
+    bad = np.argwhere(~np.isfinite(q))
+    if bad.size:
+        i, j = (int(v) for v in bad[0])
+        raise ValueError(
+            f"{name} must be finite: row {i}, column {arm.state_names[j]!r} is {float(q[i, j])}"
+        )

@@ -1,6 +1,9 @@
 """File contracts: model TOML, measurement CSV, result JSON (see ``shared/design.md``)."""
 
 from .files import OutputExistsError as OutputExistsError
+from .files import save_figure_atomic as save_figure_atomic
+from .files import write_bytes_atomic as write_bytes_atomic
+from .files import write_file_atomic as write_file_atomic
 from .files import write_text_atomic as write_text_atomic
 from .frame_errors import FrameErrorFileError as FrameErrorFileError
 from .frame_errors import frame_errors_from_mapping as frame_errors_from_mapping

@@ -1,10 +1,13 @@
 """Writing output files safely: atomically, and never over an existing file unless asked.
 
-Every writer of :mod:`cdra_jax.io` (measurement CSV, result JSON, frame-error files) goes through
-:func:`write_text_atomic`: the text is written to a temporary file in the destination folder and
-then moved into place in one step, so a reader (or a crash) never sees half a file. Without
-``force`` an existing destination is never replaced; the check and the move are one atomic step
-where the file system supports hard links (``os.link`` fails when the name exists).
+Every file the package writes goes through this module: measurement CSVs, result JSONs,
+frame-error and model files (:func:`write_text_atomic`), sweep tables (:func:`write_file_atomic`,
+streamed), figures (:func:`save_figure_atomic`: the demo's, ``diagnose --plots``,
+``sweep --plot``) and any other bytes (:func:`write_bytes_atomic`). The content is written to a
+temporary file in the destination folder, flushed and ``fsync``-ed, then moved into place in one
+step, so a reader (or a crash) never sees half a file. Without ``force`` an existing destination
+is never replaced; the check and the move are one atomic step where the file system supports
+hard links (``os.link`` fails when the name exists), so two writers cannot both "win".
 """
 
 from __future__ import annotations
@@ -14,8 +17,9 @@ import json
 import os
 import tempfile
 import uuid
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 
 class OutputExistsError(FileExistsError):
@@ -24,6 +28,59 @@ class OutputExistsError(FileExistsError):
 
 def _exists_message(path: Path) -> str:
     return f"{path}: file exists; refusing to overwrite it (pass force=True, or --force)"
+
+
+def write_file_atomic(
+    path: str | os.PathLike,
+    write: Callable[[IO[Any]], object],
+    *,
+    force: bool = False,
+    binary: bool = False,
+) -> Path:
+    """Write a file atomically by calling ``write(f)`` on an open temporary file; returns the path.
+
+    Args:
+        path: destination file; its folder must exist.
+        write: fills the open file ``f`` (text, UTF-8 with ``newline=""``, or binary); it may
+            write in pieces (bounded memory for large tables).
+        force: replace an existing file. Without it an existing file raises
+            :class:`OutputExistsError` and is left untouched.
+        binary: open the temporary file in binary mode.
+
+    Raises:
+        OutputExistsError: ``path`` exists and ``force`` is false.
+        OSError: the folder does not exist or is not writable, or ``path`` is a folder (the
+            message names the path).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a folder, expected a file name")
+    if not force and path.exists():
+        raise OutputExistsError(_exists_message(path))
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{path}: folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600; give it a normal file's mode
+        f: IO[Any]
+        if binary:
+            f = os.fdopen(fd, "wb")
+        else:
+            f = os.fdopen(fd, "w", encoding="utf-8", newline="")
+        with f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        if force:
+            os.replace(tmp, path)
+        else:
+            _move_no_clobber(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
 
 
 def write_text_atomic(path: str | os.PathLike, text: str, *, force: bool = False) -> Path:
@@ -39,28 +96,28 @@ def write_text_atomic(path: str | os.PathLike, text: str, *, force: bool = False
         OutputExistsError: ``path`` exists and ``force`` is false.
         OSError: the folder does not exist or is not writable (message names the path).
     """
+    return write_file_atomic(path, lambda f: f.write(text), force=force)
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes, *, force: bool = False) -> Path:
+    """Write ``data`` to ``path`` atomically; as :func:`write_text_atomic` otherwise."""
+    return write_file_atomic(path, lambda f: f.write(data), force=force, binary=True)
+
+
+def save_figure_atomic(
+    fig: Any, path: str | os.PathLike, *, force: bool = False, **savefig_kwargs: Any
+) -> Path:
+    """Save a matplotlib figure to ``path`` atomically; returns the path.
+
+    The format comes from the suffix (``.png``, ``.pdf``, ``.svg`` ...; PNG without one), and
+    ``savefig_kwargs`` (e.g. ``dpi=120``) go to ``fig.savefig``. Same rules as
+    :func:`write_text_atomic`: no overwrite without ``force``, no half-written file.
+    """
     path = Path(path)
-    if not force and path.exists():
-        raise OutputExistsError(_exists_message(path))
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600; give it a normal file's mode
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        if force:
-            os.replace(tmp, path)
-        else:
-            _move_no_clobber(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    return path
+    fmt = path.suffix[1:].lower() or "png"
+    return write_file_atomic(
+        path, lambda f: fig.savefig(f, format=fmt, **savefig_kwargs), force=force, binary=True
+    )
 
 
 def _umask() -> int:

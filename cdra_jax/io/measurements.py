@@ -540,7 +540,7 @@ def loads_measurements(
             bad = np.flatnonzero(np.abs(values[name]) != 1.0)
             if bad.size:
                 raise ctx.error(
-                    f"approach direction must be +1 or -1, got {values[name][bad[0]]!r}",
+                    f"approach direction must be +1 or -1, got {values[name][bad[0]]:g}",
                     column=name,
                     row=int(bad[0]),
                 )
@@ -572,7 +572,7 @@ def loads_measurements(
                 k = int(bad[0])
                 raise ctx.error(
                     f"quaternion (measured.qw, .qx, .qy, .qz) = {tuple(quat[k].tolist())} is not "
-                    f"unit: its norm {norm[k]!r} differs from 1 by {abs(norm[k] - 1.0):.3g} "
+                    f"unit: its norm {norm[k]:.7g} differs from 1 by {abs(norm[k] - 1.0):.3g} "
                     f"(tolerance {QUATERNION_TOL:g})",
                     column=QUATERNION_COLUMNS[0],
                     row=k,

@@ -182,7 +182,10 @@ def hull_margin(A: ArrayLike) -> Array:
     c = jnp.concatenate(cands, axis=-2)
     valid = jnp.concatenate(valids, axis=-1)
     support = jnp.max(jnp.einsum("...ck,...nk->...cn", c, cols), axis=-1)
-    return jnp.min(jnp.where(valid, support, jnp.inf), axis=-1)
+    margin = jnp.min(jnp.where(valid, support, jnp.inf), axis=-1)
+    # No candidate at all: every column is at the origin, the hull is the origin itself, whose
+    # distance to it is 0 (not the inf of an empty minimum).
+    return jnp.where(jnp.any(valid, axis=-1), margin, 0.0)
 
 
 def lever_scale(module: Module) -> float | Array:
