@@ -234,9 +234,15 @@ class TableOne:
         identifiable_part: norm of the projection of ``group_difference`` onto the identifiable
             subspace (orthogonal complement of the null space at the actual arm): ~0.
         paper_identifiable_part: the same for the paper's values (limited by their rounding).
-        null_space: ``(n_null, 6 (K+1))`` unidentifiable directions at the actual arm.
-        unidentifiable: those directions as text.
-        null_coordinates: ``group_difference`` in the ``null_space`` basis ``(n_null,)``.
+        null_space: ``(n_null, 6 (K+1))`` orthonormal basis of the unidentifiable directions at
+            the actual arm (for projections).
+        directions: ``(n_null, 6 (K+1))`` the same subspace in the readable basis of
+            :func:`~cdra_jax.identifiability.analyze` (rows ``n1, n2, ...``), which is what
+            :func:`format_table_one` prints.
+        unidentifiable: ``directions`` as text.
+        null_coordinates: ``group_difference`` in the ``directions`` basis ``(n_null,)``: the
+            least-squares ``c`` with ``directions^T c ~ group_difference`` (the residual is the
+            identifiable part).
         paper_null_coordinates: the same for the paper's values.
         verification: name -> ``(dp, dR)`` of several models against the actual tool poses at
             ``m_verify`` held-out poses: ``"nominal"``, ``"ours"``, ``"ours_rounded"`` (ours
@@ -264,6 +270,7 @@ class TableOne:
     identifiable_part: float
     paper_identifiable_part: float
     null_space: np.ndarray
+    directions: np.ndarray
     unidentifiable: tuple[str, ...]
     null_coordinates: np.ndarray
     paper_null_coordinates: np.ndarray
@@ -437,8 +444,13 @@ def table_one(
     rep = analyze(actual, out["q_ver"])
     N = rep.null_space
     P = np.eye(arm.n_params) - N.T @ N
+    # The printed basis n1, n2, ...: the readable directions, not the orthonormal one.
+    B = rep.null_space if rep.directions is None else rep.directions
     identified = out["errors"]
     d_ours, d_paper = out["d_ours"], out["d_paper"]
+
+    def coordinates(d: np.ndarray) -> np.ndarray:
+        return np.linalg.lstsq(B.T, d, rcond=None)[0]
 
     def pair(v) -> tuple[float, float]:
         return float(v[0]), float(v[1])
@@ -462,9 +474,10 @@ def table_one(
         identifiable_part=float(np.linalg.norm(P @ d_ours)),
         paper_identifiable_part=float(np.linalg.norm(P @ d_paper)),
         null_space=N,
+        directions=B,
         unidentifiable=rep.unidentifiable,
-        null_coordinates=N @ d_ours,
-        paper_null_coordinates=N @ d_paper,
+        null_coordinates=coordinates(d_ours),
+        paper_null_coordinates=coordinates(d_paper),
         verification={k: pair(v) for k, v in out["verification"].items()},
         rounding_bound={k: pair(v) for k, v in out["bounds"].items()},
         rounding_rms={k: pair(v) for k, v in out["expected"].items()},
@@ -517,6 +530,10 @@ def format_table_one(t: TableOne) -> str:
     )
     for k, text in enumerate(t.unidentifiable):
         lines.append(f"  n{k + 1} = {text}")
+    lines.append(
+        "group differences in exactly these directions (least-squares coordinates; what they "
+        "leave over is the identifiable part):"
+    )
     names = t.param_names
     for who, d, c, part in (
         ("ours", t.group_difference, t.null_coordinates, t.identifiable_part),

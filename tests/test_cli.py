@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 import sys
+import tomllib
 import types
+from pathlib import Path
 
 import equinox as eqx
 import numpy as np
 import pytest
 
-from cdra_jax import cli, default_arm, tool_pose
+from cdra_jax import cli, default_arm, demo, tool_pose
 from cdra_jax.io import dumps_model, loads_measurements
 
 COMPONENTS = ("vx", "vy", "vz", "wx", "wy", "wz")
@@ -293,6 +295,29 @@ def test_help_and_usage_errors(capsys):
     assert cli.main(["calibrate", "--data", "x.csv"]) == cli.EXIT_USAGE  # --out missing
     assert "--out" in capsys.readouterr().err
     assert cli.main(["calibrate", "--solver", "gn", "--data", "x", "--out", "y"]) == 2
+
+
+def test_demo_entry_point_dispatches_to_the_demo(tmp_path, monkeypatch, capsys):
+    # The installed `cdra-jax` script is cli.main; `cdra-jax demo ...` must reach demo.run.
+    pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+    scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
+    assert scripts == {"cdra-jax": "cdra_jax.cli:main"}
+    assert cli.main(["demo", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "usage: cdra-jax demo" in out and "--full" in out and "Table I" in out
+    # The real demo.run, cheaply: a non-empty --out folder is refused before any computation.
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "keep.txt").write_text("keep")
+    assert cli.main(["demo", "--out", str(taken)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (taken / "keep.txt").read_text() == "keep"
+    # The parsed options arrive at demo.run unchanged.
+    seen = []
+    monkeypatch.setattr(demo, "run", lambda args: seen.append(args) or 0)
+    assert cli.main(["demo", "--full", "--out", str(tmp_path / "o"), "--seed", "3"]) == 0
+    (args,) = seen
+    assert (args.full, args.out, args.seed, args.force) == (True, str(tmp_path / "o"), 3, False)
 
 
 def test_external_subcommand_module_plugs_in(monkeypatch, capsys):

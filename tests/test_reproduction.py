@@ -6,6 +6,7 @@ reuses their compiled programs within the test session.
 
 import json
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +20,7 @@ from cdra_jax import (
     reproduction,
     tool_pose,
 )
+from cdra_jax.identifiability import format_combination
 
 SMALL = demo.SMALL
 
@@ -88,6 +90,56 @@ def test_table_one_differences_lie_in_the_null_space(cdra, table):
     F_up = lie.se3_exp(jnp.asarray(table.preset[1])) @ cdra.frames[1]
     np.testing.assert_allclose(d_up, np.asarray(lie.adjoint(F_up) @ zeta), atol=1e-9)
     np.testing.assert_allclose(table.group_difference[[0, 3]], 0.0, atol=1e-9)
+
+
+def _parse_combination(text, names):
+    """A vector over ``names`` from ``format_combination`` text ("0.707 a.wy - 217 a.vx ...")."""
+    v = np.zeros(len(names))
+    for term in text.replace(" - ", " + -").split(" + "):
+        coef, name = term.split()
+        v[names.index(name)] += float(coef)
+    return v
+
+
+def test_table_one_null_coordinates_are_in_the_printed_basis(table):
+    # Data: the coordinates are those of the readable directions that are printed as n1, n2.
+    names = table.param_names
+    B = table.directions
+    assert B.shape == table.null_space.shape == (2, 24)
+    assert table.unidentifiable == tuple(format_combination(b, names) for b in B)
+    for d, c, part in (
+        (table.group_difference, table.null_coordinates, table.identifiable_part),
+        (table.paper_group_difference, table.paper_null_coordinates, table.paper_identifiable_part),
+    ):
+        outside = np.linalg.norm(d.reshape(-1) - B.T @ c)
+        assert outside == pytest.approx(part, rel=1e-6, abs=1e-12)
+    assert table.identifiable_part < 1e-8
+    # Text: the printed coefficients times the printed directions give the printed difference,
+    # to the printing precision (3 significant digits for vectors, 4 for coefficients).
+    text = reproduction.format_table_one(table).splitlines()
+    printed_dirs = [
+        _parse_combination(line.split(" = ", 1)[1], names)
+        for line in text
+        if re.match(r"^  n\d+ = ", line)
+    ]
+    assert len(printed_dirs) == 2
+    np.testing.assert_allclose(printed_dirs, B, rtol=5e-3, atol=1e-8)
+    checked = 0
+    for who, part in (("ours", table.identifiable_part), ("paper", table.paper_identifiable_part)):
+        i = next(k for k, line in enumerate(text) if line.strip().startswith(f"{who}: log("))
+        coords = re.findall(r"([+-]\d[\d.]*(?:e[+-]\d+)?) n(\d+)", text[i])
+        assert [int(k) for _, k in coords] == [1, 2], text[i]
+        c = np.array([float(v) for v, _ in coords])
+        diff = _parse_combination(text[i + 1].strip()[1:-1], names)
+        recon = c @ np.array(printed_dirs)
+        scale = np.abs(c) @ np.abs(np.array(printed_dirs))
+        bound = 6e-3 * scale + 6e-3 * np.abs(diff) + 1.1 * part + 2e-6
+        assert np.all(np.abs(recon - diff) <= bound), (who, recon - diff, bound)
+        # ... and the reconstruction is the exact difference up to its identifiable part
+        exact = table.group_difference if who == "ours" else table.paper_group_difference
+        np.testing.assert_allclose(recon, exact.reshape(-1), atol=float(np.max(bound)))
+        checked += 1
+    assert checked == 2
 
 
 def test_table_one_papers_values_fit_to_their_rounding(table):
