@@ -11,7 +11,9 @@ from scipy.spatial import ConvexHull
 
 from cdra_jax.arm import Arm
 from cdra_jax.modules import (
+    DEFAULT_MIN_MARGIN,
     arm_closure_margins,
+    arm_tension_closure,
     hull_margin,
     lever_scale,
     sample_feasible_states,
@@ -142,3 +144,24 @@ def test_sampler_raises_when_too_few_states_are_feasible(cdra):
     arm = Arm(frames=cdra.frames[:2], modules=(elbow,), frame_names=("base", "tool"))
     with pytest.raises(Exception, match="fewer than m of the oversample"):
         jax.block_until_ready(_sample(jax.random.PRNGKey(0), arm, 4))
+
+
+def test_arm_closure_gives_the_verdicts_of_tension_closure_and_hull_margin(cdra):
+    """arm_tension_closure's fused test of the spherical modules against the reference
+    functions (exact verdict, margin over all hull directions), inside and beyond the box."""
+
+    def reference(q, min_margin):
+        ok = np.ones(q.shape[0], bool)
+        for mod, qi in zip(cdra.modules, cdra.split_state(q), strict=True):
+            verdict, margin = map(np.asarray, _closure(structure_matrix(mod, qi)))
+            ok &= verdict & (margin / float(lever_scale(mod)) > min_margin)
+        return ok
+
+    fused = jax.jit(arm_tension_closure, static_argnums=2)
+    u = np.asarray(sample_states(jax.random.PRNGKey(11), cdra, 20 * R))
+    for q in (u, 1.6 * u):  # 1.6 x the box: every module also loses closure
+        for min_margin in (0.0, DEFAULT_MIN_MARGIN, 0.2):
+            ok = np.asarray(fused(cdra, jnp.asarray(q), min_margin))
+            expected = reference(q, min_margin)
+            assert 0 < expected.sum() < len(q)
+            np.testing.assert_array_equal(ok, expected)
