@@ -8,7 +8,9 @@ Usage::
         [--no-progress] [--force]
 
 ``--noise-rot`` takes one value for all position levels or one per level; ``0`` and ``0`` is the
-noise-free level. Writes the tidy per-trial table (:mod:`cdra_jax.sweeps`; ``.csv``, or
+noise-free level. Module states are drawn within the joint limits and, where the model has
+cables, with tension closure in every cabled module (:func:`cdra_jax.simulation.sample_poses`, the
+paper's Section V step 1). Writes the tidy per-trial table (:mod:`cdra_jax.sweeps`; ``.csv``, or
 ``.parquet`` where pyarrow is installed) and prints the median held-out accuracy per cell.
 Provides ``register(subparsers)`` and ``run(args)`` for :mod:`cdra_jax.cli`, and ``main(argv)``.
 """
@@ -50,7 +52,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "sweep",
         help="Monte-Carlo noise-sensitivity sweep (noise x poses x solvers x trials)",
-        description="Simulate and calibrate many trials (Section V/VI procedure) for every "
+        description="Simulate and calibrate many trials (Section V/VI procedure: module states "
+        "within the joint limits and, where the model has cables, with tension closure) for every "
         "combination of noise level, pose count and solver; write one row per trial.",
     )
     p.add_argument("--model", metavar="M", help="model TOML file (default: the embedded CDRA)")

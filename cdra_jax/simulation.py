@@ -1,10 +1,10 @@
 """Synthetic measurements: pose sampling, preset frame errors and measurement noise (Section V).
 
-The paper's simulation procedure: (1) draw random module states within the joint limits,
-(2) preset errors ``dt'_j`` on the fixed transforms, uniform in ``+-d_v`` (mm) and ``+-d_w``
-(rad) per component, (3) compute the 'actual' tool poses from the erroneous frames, and (for
-Section VI) add measurement noise. Everything is pure JAX with explicit PRNG keys, so it jits
-and vmaps over trials.
+The paper's simulation procedure: (1) draw random module states within the joint limits that
+satisfy the tension-closure condition (:func:`sample_poses`), (2) preset errors ``dt'_j`` on the
+fixed transforms, uniform in ``+-d_v`` (mm) and ``+-d_w`` (rad) per component, (3) compute the
+'actual' tool poses from the erroneous frames, and (for Section VI) add measurement noise.
+Everything is pure JAX with explicit PRNG keys, so it jits and vmaps over trials.
 """
 
 from __future__ import annotations
@@ -37,11 +37,17 @@ def sample_states(key: Array, arm: Arm, m: int, dtype=None) -> Array:
 def sample_poses(key: Array, arm: Arm, m: int, dtype=None) -> Array:
     """Section V step 1: ``m`` states within the joint limits that the arm can hold: ``(m, dof)``.
 
-    When every module of ``arm`` has cables in the model, states are drawn uniformly within the
-    limits and rejected unless every module has tension closure with a margin
-    (:func:`cdra_jax.modules.sample_feasible_states`); otherwise this is :func:`sample_states`.
+    When a module of ``arm`` has cables in the model, states are drawn uniformly within the
+    limits and rejected unless every module with cables has tension closure with a margin
+    (:func:`cdra_jax.modules.sample_feasible_states` with its default margin); the states of
+    modules without cables impose no condition and stay uniform within their limits. Without
+    cables anywhere this is :func:`sample_states`. Jit- and vmap-able (a fixed number of draws;
+    raises at run time in the rare case that too few of them are feasible, see
+    :func:`~cdra_jax.modules.sample_feasible_states`). The default sampler of
+    :func:`simulate_trial` (and so of the sweeps), of the paper reproduction, of
+    ``cdra-jax simulate`` and of the pose-selection pool.
     """
-    if arm.modules and all(mod.n_cables > 0 for mod in arm.modules):
+    if any(mod.n_cables > 0 for mod in arm.modules):
         from .modules.tension import sample_feasible_states
 
         return sample_feasible_states(key, arm, m, dtype)
@@ -149,13 +155,15 @@ def simulate_trial(
         d_v, d_w: preset error ranges (mm, rad), used when ``errors`` is ``None``.
         noise: measurement noise, or ``None`` for noise-free 'measurements'.
         m_verify: number of verification poses (default ``m``).
-        sampler: module-state sampler (default :func:`sample_states`).
+        sampler: module-state sampler ``sampler(key, arm, m)`` (default :func:`sample_poses`:
+            uniform within the joint limits and, for modules with cables, with tension closure;
+            pass :func:`sample_states` for plain uniform states).
         errors: preset errors ``(6 (K+1),)`` instead of random ones.
 
     Returns:
         ``(q_cal (m, dof), T_cal (m, 4, 4), q_ver, T_ver, errors (6 (K+1),))``.
     """
-    sampler = sampler or sample_states
+    sampler = sampler or sample_poses
     k_err, k_cal, k_ver, k_n1, k_n2 = jax.random.split(key, 5)
     if errors is None:
         X = random_frame_errors(k_err, arm, d_v, d_w)

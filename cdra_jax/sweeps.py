@@ -1,8 +1,10 @@
 """Batched Monte-Carlo noise-sensitivity sweeps: noise level x pose count x solver x trial.
 
 Every trial is the paper's Section V/VI procedure (:func:`cdra_jax.simulation.simulate_trial`:
-random module states, preset frame errors uniform in ``+-d_v`` mm / ``+-d_w`` rad, simulated
-measurements with isotropic Gaussian noise) followed by one calibration and its evaluation:
+random module states within the joint limits and, for modules with cables, with tension closure
+(:func:`cdra_jax.simulation.sample_poses`, for the calibration and the held-out states alike),
+preset frame errors uniform in ``+-d_v`` mm / ``+-d_w`` rad, simulated measurements with
+isotropic Gaussian noise) followed by one calibration and its evaluation:
 
 * ``dp_fit``, ``dR_fit``: Eqs. 20-21 between the calibrated model and the measured calibration
   poses;
@@ -508,7 +510,11 @@ def run_sweep(
             grows with it, not with ``trials``.
         d_v, d_w: preset error ranges (Section V: 1 mm, 0.05 rad).
         m_verify: held-out states per trial.
-        sampler: module-state sampler ``sampler(key, arm, m)`` (default uniform in the limits).
+        sampler: module-state sampler ``sampler(key, arm, m)``, traced inside the vmapped trial
+            (default :func:`cdra_jax.simulation.sample_poses`: uniform within the joint limits
+            and, for modules with cables, with tension closure at the default margin of
+            :func:`cdra_jax.modules.sample_feasible_states`; modules without cables stay
+            uniform). Pass :func:`cdra_jax.simulation.sample_states` for plain uniform states.
         max_iterations: solver iteration cap (default: each solver's own).
         devices: devices to shard the trial axis over (default ``jax.devices()``).
         progress: show a tqdm progress bar (only when stderr is a terminal).

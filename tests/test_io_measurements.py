@@ -454,3 +454,38 @@ def test_bad_cable_lengths_name_row_and_column(cdra, edit, expected):
         loads_measurements("\n".join(lines) + "\n", cdra, source="c.csv")
     for part in expected:
         assert part in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("edit", "expected"),
+    [
+        # a NaN length (a sensor dropout exported as text)
+        ("nan", ["line 3, column 'wrist.l3'", "'nan' is not a finite number"]),
+        # a fifth wrist cable the model does not have
+        ("l5", ["line 1 (header row), column 'wrist.l5'", "module 'wrist' has 4 cables"]),
+    ],
+)
+def test_nan_length_and_unknown_cable_column_name_file_line_and_column(
+    cdra, tmp_path, edit, expected
+):
+    import jax
+
+    from cdra_jax.simulation import sample_states
+
+    q = np.asarray(sample_states(jax.random.PRNGKey(5), cdra, 5))
+    text, _ = _cable_csv(cdra, q, module="wrist")
+    lines = text.splitlines()
+    if edit == "nan":
+        cells = lines[2].split(",")
+        cells[lines[0].split(",").index("wrist.l3")] = "nan"
+        lines[2] = ",".join(cells)
+    else:
+        lines = [lines[0] + ",wrist.l5"] + [line + ",52.0" for line in lines[1:]]
+    path = tmp_path / "cables.csv"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(MeasurementFileError) as info:
+        load_measurements(path, cdra)
+    message = str(info.value)
+    assert message.startswith(f"{path}, "), message
+    for part in expected:
+        assert part in message, message

@@ -110,6 +110,30 @@ def test_forward_kinematics_from_noisy_lengths_reports_the_residual(cdra):
         assert 1e-6 < float(jnp.median(err)) < 5e-3
 
 
+@pytest.mark.parametrize("index", [0, 1, 2])
+def test_forward_kinematics_under_vmap_equals_a_loop(cdra, index):
+    """jax.vmap over poses gives, pose by pose, what one unbatched call per pose gives: the
+    state, residuals, iterations and result code, for exact, noisy, inconsistent and NaN rows."""
+    module = cdra.modules[index]
+    k = 8
+    q = _uniform(jax.random.PRNGKey(20 + index), module, k)
+    lengths = cable_lengths(module, q)
+    noise = 0.02 * jax.random.normal(jax.random.PRNGKey(30 + index), lengths.shape)
+    lengths = lengths.at[1:4].add(noise[1:4]).at[4, 0].add(5.0).at[5, -1].set(jnp.nan)
+    one = jax.jit(lambda L: cable_forward_kinematics(module, L))
+    batched = jax.jit(jax.vmap(lambda L: cable_forward_kinematics(module, L)))(lengths)
+    looped = [one(lengths[i]) for i in range(k)]
+    codes = result_names(batched.result)
+    assert list(codes[:6]) == ["successful"] * 4 + ["inconsistent_lengths", "nonfinite"]
+    for i, sol in enumerate(looped):
+        assert result_names(sol.result) == codes[i]
+        assert int(sol.iterations) == int(batched.iterations[i])
+        for name in ("state", "residual_rms", "residuals"):
+            np.testing.assert_allclose(
+                getattr(sol, name), getattr(batched, name)[i], rtol=0, atol=1e-12, err_msg=name
+            )
+
+
 def test_inconsistent_and_bad_lengths_get_result_codes(cdra):
     sh = cdra.modules[0]
     good = cable_lengths(sh, _uniform(jax.random.PRNGKey(3), sh, N))

@@ -11,14 +11,17 @@ from scipy.spatial import ConvexHull
 
 from cdra_jax.arm import Arm
 from cdra_jax.modules import (
+    DEFAULT_MIN_MARGIN,
     arm_closure_margins,
+    arm_tension_closure,
+    closure_margin,
     hull_margin,
     lever_scale,
     sample_feasible_states,
     structure_matrix,
     tension_closure,
 )
-from cdra_jax.simulation import sample_states, simulate_trial
+from cdra_jax.simulation import sample_poses, sample_states, simulate_trial
 
 
 def _oracle_closure(A: np.ndarray) -> bool:
@@ -142,3 +145,67 @@ def test_sampler_raises_when_too_few_states_are_feasible(cdra):
     arm = Arm(frames=cdra.frames[:2], modules=(elbow,), frame_names=("base", "tool"))
     with pytest.raises(Exception, match="fewer than m of the oversample"):
         jax.block_until_ready(_sample(jax.random.PRNGKey(0), arm, 4))
+
+
+def test_arm_closure_gives_the_verdicts_of_tension_closure_and_hull_margin(cdra):
+    """arm_tension_closure's fused test of the spherical modules against the reference
+    functions (exact verdict, margin over all hull directions), inside and beyond the box."""
+
+    def reference(q, min_margin):
+        ok = np.ones(q.shape[0], bool)
+        for mod, qi in zip(cdra.modules, cdra.split_state(q), strict=True):
+            verdict, margin = map(np.asarray, _closure(structure_matrix(mod, qi)))
+            ok &= verdict & (margin / float(lever_scale(mod)) > min_margin)
+        return ok
+
+    fused = jax.jit(arm_tension_closure, static_argnums=2)
+    u = np.asarray(sample_states(jax.random.PRNGKey(11), cdra, 20 * R))
+    for q in (u, 1.6 * u):  # 1.6 x the box: every module also loses closure
+        for min_margin in (0.0, DEFAULT_MIN_MARGIN, 0.2):
+            ok = np.asarray(fused(cdra, jnp.asarray(q), min_margin))
+            expected = reference(q, min_margin)
+            assert 0 < expected.sum() < len(q)
+            np.testing.assert_array_equal(ok, expected)
+
+
+def _without_cables(module):
+    return dataclasses.replace(module, cable_base=None, cable_platform=None, cable_offset=None)
+
+
+def test_sample_poses_conditions_only_the_modules_with_cables(cdra):
+    key = jax.random.PRNGKey(4)
+    # no cables anywhere: plain uniform states
+    bare = dataclasses.replace(cdra, modules=tuple(_without_cables(m) for m in cdra.modules))
+    np.testing.assert_array_equal(sample_poses(key, bare, M), sample_states(key, bare, M))
+    # the wrist alone has cables: its poses close, the others stay uniform (not thinned)
+    mixed = dataclasses.replace(
+        cdra, modules=tuple(m if m.name == "wrist" else _without_cables(m) for m in cdra.modules)
+    )
+    q = np.asarray(sample_poses(key, mixed, M))
+    np.testing.assert_array_equal(q, sample_feasible_states(key, mixed, M))
+    raw = np.asarray(sample_states(key, mixed, R))
+    wrist = cdra.module("wrist")
+    q_wrist = mixed.split_state(raw)[2]
+    kept = np.asarray(_closure(structure_matrix(wrist, q_wrist))[0]) & (
+        np.asarray(closure_margin(wrist, q_wrist)) > DEFAULT_MIN_MARGIN
+    )
+    assert 0 < (~kept).sum(), "some wrist draws must be rejected"
+    np.testing.assert_array_equal(q, raw[kept][:M])
+
+
+@pytest.mark.slow
+def test_simulate_trial_draws_only_poses_with_tension_closure(cdra):
+    """simulate_trial's default sampler (the sweeps' too): every calibration and held-out pose
+    of a vmapped batch of trials has tension closure with the sampler's margin."""
+    keys = jax.random.split(jax.random.PRNGKey(8), 64)
+    q_cal, _, q_ver, _, _ = jax.jit(jax.vmap(lambda k: simulate_trial(k, cdra, 15, m_verify=50)))(
+        keys
+    )
+    q = np.concatenate(
+        [np.asarray(q_cal).reshape(-1, cdra.dof), np.asarray(q_ver).reshape(-1, cdra.dof)]
+    )
+    assert q.shape == (64 * 65, cdra.dof)
+    assert np.all(np.asarray(_margins(cdra, q)) > DEFAULT_MIN_MARGIN)
+    # the uniform draws they replace would include poses without closure
+    u = np.asarray(sample_states(jax.random.PRNGKey(8), cdra, len(q)))
+    assert np.mean(np.asarray(_margins(cdra, u)).min(-1) <= DEFAULT_MIN_MARGIN) > 0.05

@@ -13,8 +13,16 @@ import numpy as np
 import pytest
 from _devices import run_on_two_cpu_devices
 
-from cdra_jax import NoiseModel, apply_frame_errors, calibrate_paper, deviation_metrics, tool_pose
+from cdra_jax import (
+    NoiseModel,
+    apply_frame_errors,
+    calibrate_paper,
+    deviation_metrics,
+    sweeps,
+    tool_pose,
+)
 from cdra_jax.cli_sweep import main as sweep_main
+from cdra_jax.modules import DEFAULT_MIN_MARGIN, arm_tension_closure
 from cdra_jax.simulation import simulate_trial
 from cdra_jax.sweeps import (
     COLUMNS,
@@ -98,6 +106,30 @@ def test_trial_matches_direct_computation(cdra, table):
         [table[c][i] for c in ("dp_fit", "dR_fit", "dp_heldout", "dR_heldout", "dp_verify")],
         rtol=1e-9,
     )
+
+
+def test_every_pose_a_sweep_draws_has_tension_closure(cdra, table, monkeypatch):
+    """The module states of every trial (calibration and held-out), recorded from inside the
+    compiled, vmapped cell: all of them are poses with tension closure (the default sampler is
+    simulation.sample_poses, not plain uniform states), and recording changes no result."""
+    drawn = []
+
+    def recording(key, arm, m, **kw):
+        out = simulate_trial(key, arm, m, **kw)
+        jax.debug.callback(lambda *q: drawn.extend(np.asarray(x) for x in q), out[0], out[2])
+        return out
+
+    monkeypatch.setattr(sweeps, "simulate_trial", recording)
+    sweeps._batched_trials.cache_clear()  # trace the cell again, with the recording
+    try:
+        recorded = run_sweep(cdra, LEVELS, [5], trials=3, **CELL)
+    finally:
+        sweeps._batched_trials.cache_clear()
+    _assert_same_trials(table, recorded)
+    q = np.concatenate([x.reshape(-1, cdra.dof) for x in drawn])
+    # 2 levels x 3 trials (padded to 2 chunks of 4) x (5 calibration + 10 held-out) states
+    assert len(q) >= 6 * 15
+    assert np.asarray(arm_tension_closure(cdra, q, DEFAULT_MIN_MARGIN)).all()
 
 
 @pytest.mark.slow
