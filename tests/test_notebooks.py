@@ -25,9 +25,10 @@ NOTEBOOKS: dict[str, dict[str, object]] = {
         "NOISE_PAD_TO": 40,
         "FAST_COMPILE": True,
     },
-    # Notebooks 02 and 03 read CDRA_NOTEBOOK_FAST=1 (always set) in their parameters cell.
+    # Notebooks 02-04 read CDRA_NOTEBOOK_FAST=1 (always set) in their parameters cell.
     "02_noise_sensitivity.ipynb": {},
     "03_missing_physics.ipynb": {},
+    "04_cdpm_modules.ipynb": {},
 }
 """Notebook file name -> the parameter overrides that make it run in well under a minute."""
 
@@ -54,6 +55,19 @@ EXPECTED_TEXT: dict[str, tuple[str, ...]] = {
         "Most likely missing physics: the shoulder module's cables stretch",
         "held-out position error",
     ),
+    "04_cdpm_modules.ipynb": (
+        "100% successful",  # forward kinematics from exact lengths
+        "lengths.csv: row 3, column shoulder.l3: no pose of module 'shoulder'",
+        "sampled states with tension closure in every module: True",
+        "simulate_trial's states with tension closure: True",
+        "100% solved",  # holding tensions
+        "calibrated from the file (states from lengths)",
+        "self-calibration from exact lengths: successful",
+        "self-calibration from noisy lengths: successful",
+        "self-calibration of shoulder: rank 36 of 42 parameters",
+        "rotation of all shoulder base points about the module centre",
+        "self-calibration of elbow: rank 7 of 14 parameters",
+    ),
 }
 """Text each notebook's printed output must contain when run at reduced size."""
 
@@ -61,6 +75,7 @@ MIN_IMAGES: dict[str, int] = {
     "01_paper_reproduction.ipynb": 3,
     "02_noise_sensitivity.ipynb": 0,  # draws with the Agg backend and saves; checked by its text
     "03_missing_physics.ipynb": 2,
+    "04_cdpm_modules.ipynb": 3,
 }
 """Minimum number of PNG outputs each notebook shows inline."""
 
