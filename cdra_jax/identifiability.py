@@ -268,10 +268,7 @@ def generic_rank(
     lim = np.asarray(arm.state_limits, dtype=float)
     u = np.random.default_rng(0).uniform(size=(m, arm.dof))
     q = lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
-    D = stacked_jacobian(arm, q, None, noise)
-    s = np.linalg.svd(D, compute_uv=False)
-    rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
-    return int(np.sum(s > rcond * s[0])) if s.size and s[0] > 0 else 0
+    return analyze(arm, q, None, noise, rcond=rcond, allow_underdetermined=True).rank
 
 
 def analyze(
