@@ -4,7 +4,7 @@ Usage::
 
     cdra-jax simulate --poses 20 --seed 1 --out poses.csv --truth truth.json
     cdra-jax calibrate --data poses.csv --out result.json [--model arm.toml] [--solver paper|lm]
-        [--loss ls|huber|cauchy]
+        [--loss ls|huber|cauchy [--reject-outliers]]
 
 Exit codes: 0 success; 1 bad input or a file problem (one line ``error: ...`` on stderr, no
 traceback); 2 wrong usage (argparse); 3 the calibration did not converge (the result file is
@@ -180,6 +180,13 @@ def _register_calibrate(subparsers) -> None:
         "estimation that down-weights outlying poses (iteratively reweighted, around --solver)",
     )
     p.add_argument(
+        "--reject-outliers",
+        action="store_true",
+        help="with --loss huber|cauchy: finish with a least-squares refit that leaves out the "
+        "flagged poses (kept only when it loses no identifiable direction; they stay in the "
+        "result)",
+    )
+    p.add_argument(
         "--max-iterations",
         metavar="N",
         type=int,
@@ -193,6 +200,11 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     noise = _noise(args)
     if args.max_iterations is not None and args.max_iterations < 1:
         raise ValueError(f"--max-iterations must be at least 1, got {args.max_iterations}")
+    if args.reject_outliers and args.loss == "ls":
+        raise ValueError(
+            "--reject-outliers needs a robust loss to flag the outliers: add --loss huber or "
+            "--loss cauchy"
+        )
     _check_output(args.out, args.force, "--out")
 
     from .calibration import calibrate_lm, calibrate_paper, calibrate_robust
@@ -220,7 +232,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         solve = calibrate_paper if args.solver == "paper" else calibrate_lm
         sol = _jitted(solve)(arm, meas.q, meas.measured, noise, **kwargs)
     else:
-        kwargs.update(loss=args.loss, solver=args.solver)
+        kwargs.update(loss=args.loss, solver=args.solver, reject_outliers=args.reject_outliers)
         sol = _jitted(calibrate_robust)(arm, meas.q, meas.measured, noise, **kwargs)
     # Unidentifiable directions are reported at the nominal model, where they read simply
     # (e.g. "0.707 upper_arm.vy - 0.707 forearm.vy" for the CDRA).
@@ -328,6 +340,18 @@ def _calibration_summary(arm, r: dict, model_label: str, data: str, ident: str) 
             f"least squares around {solver_text[rob['inner_solver']].split(' (')[0]}; "
             f"{rob['rounds']} reweighting round{'s' if rob['rounds'] != 1 else ''}"
         )
+        if rob.get("refit_without_flagged"):
+            n_out = len(out.get("poses") or [])
+            text += (
+                f"; then least squares without the {n_out} flagged pose(s) (--reject-outliers)"
+                if n_out
+                else "; then least squares on all poses (none flagged, --reject-outliers)"
+            )
+        elif rob.get("reject_outliers"):
+            text += (
+                "; the refit without the flagged poses was not kept (fewer than 4 poses left, "
+                "an identifiable direction lost, or not converged)"
+            )
     lines = [
         f"model: {arm.name} ({model_label}); data: {data} ({r['n_poses']} poses)",
         f"solver: {text}",

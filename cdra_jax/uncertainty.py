@@ -23,7 +23,8 @@ Robust fits. After :func:`~cdra_jax.calibration.calibrate_robust` pass its final
 ``(D~^T W D~)^+``, ``W = diag(w_i I_6)``: pose ``i`` counts as measured with the noise
 ``(s_pos / sqrt(w_i), s_rot / sqrt(w_i))``, the noise model of the last reweighted solve, so a
 down-weighted outlier carries (almost) no information and the intervals widen by what it no
-longer contributes. With all weights 1 it is the least-squares covariance. (This treats the
+longer contributes (a pose left out by a rejection refit, weight 0, none at all). With all
+weights 1 it is the least-squares covariance. (This treats the
 weights as known; it is the sandwich ``A^+ B A^+`` of M-estimation with
 ``A = B = D~^T W D~``, exact when the kept poses follow the stated noise.)
 
@@ -428,8 +429,7 @@ def analyze_uncertainty(
 
     Raises:
         ValueError: no noise model, a bad confidence, states of the wrong shape or not finite,
-            or weights
-            that are not ``m`` finite positive numbers.
+            or weights that are not ``m`` finite non-negative numbers with one positive.
     """
     if noise is None:
         raise ValueError("analyze_uncertainty needs a NoiseModel (position_mm, rotation_rad)")
@@ -453,17 +453,21 @@ def analyze_uncertainty(
         w = np.asarray(weights, dtype=float).reshape(-1)
         if w.shape != (q.shape[0],):
             raise ValueError(f"weights: expected one per pose ({q.shape[0]}), got {w.size}")
-        bad = np.flatnonzero(~(np.isfinite(w) & (w > 0)))
+        bad = np.flatnonzero(~(np.isfinite(w) & (w >= 0)))
         if bad.size:
             raise ValueError(
-                f"weights must be finite and positive, got {w[bad[0]]:g} for pose {bad[0]}"
+                f"weights must be finite and non-negative, got {w[bad[0]]:g} for pose {bad[0]}"
             )
-        # The robust fit's last solve: pose i with the noise (s_pos, s_rot) / sqrt(w_i).
+        if not np.any(w > 0):
+            raise ValueError("weights: at least one pose needs a positive weight, all are 0")
+        # The robust fit's last solve: pose i with the noise (s_pos, s_rot) / sqrt(w_i); a pose
+        # with weight 0 (left out by a rejection refit) has infinite noise: no information.
         sw = np.sqrt(w)
-        cov_noise = NoiseModel(
-            position_mm=np.asarray(noise.position_mm, dtype=float) / sw,
-            rotation_rad=np.asarray(noise.rotation_rad, dtype=float) / sw,
-        )
+        with np.errstate(divide="ignore"):
+            cov_noise = NoiseModel(
+                position_mm=np.asarray(noise.position_mm, dtype=float) / sw,
+                rotation_rad=np.asarray(noise.rotation_rad, dtype=float) / sw,
+            )
     unc = parameter_covariance(arm, q, cov_noise, measured, rcond=rcond)
     cov = np.asarray(unc.covariance)
     ident = np.asarray(unc.identifiable(np.eye(n)))

@@ -62,6 +62,37 @@ def test_cauchy_flags_the_corrupted_poses_in_summary_and_json(files, capsys):
     assert "the robust fit down-weighted them" in err[0]
 
 
+def test_reject_outliers_refits_without_the_flagged_poses(files, capsys):
+    d, p = files
+    out = d / "reject.json"
+    argv = ("calibrate", "--data", d / "bad.csv", "--out", out, "--loss", "huber")
+    assert _run(*argv, "--reject-outliers", "--noise-pos", 0.08, "--noise-rot", 0.001) == 0
+    r = json.loads(out.read_text())
+    assert r["converged"] and r["solver"] == "weighted+huber+reject"
+    assert r["robust"]["reject_outliers"] is True and r["robust"]["refit_without_flagged"] is True
+    bad_ids = [f"p{i + 1:02d}" for i in np.flatnonzero(p.mask)]
+    assert r["outliers"]["poses"] == bad_ids
+    assert [x["weight"] for x in r["residuals"]] == [0.0 if m else 1.0 for m in p.mask]
+    assert len(r["iterations"]) == r["robust"]["rounds"] + 2
+    assert r["uncertainty"]["weights"] == [0.0 if m else 1.0 for m in p.mask]
+    err, printed = _errors(capsys)
+    assert (
+        f"then least squares without the {len(bad_ids)} flagged pose(s) (--reject-outliers)"
+        in printed
+    )
+    assert any("the final fit left them out" in line for line in err), err
+    # without a robust loss there is nothing to flag: a clear usage error, no file
+    assert (
+        _run("calibrate", "--data", d / "bad.csv", "--out", d / "x.json", "--reject-outliers") == 1
+    )
+    err, _ = _errors(capsys)
+    assert err == [
+        "error: --reject-outliers needs a robust loss to flag the outliers: add --loss huber or "
+        "--loss cauchy"
+    ]
+    assert not (d / "x.json").exists()
+
+
 def test_least_squares_result_has_unit_weights_and_flags(files, capsys):
     d, _ = files
     out = d / "ls.json"

@@ -45,6 +45,19 @@ started from the previous frames (``arm.with_frames``). The rounds stop when no 
 by more than ``weight_tol``. The identified errors are re-expressed against the nominal frames
 (Eqs. 15-18), so the result reads exactly like an ordinary calibration.
 
+Rejection (``reject_outliers=True``). An M-estimate still feels every outlier a little: a
+Huber weight ``c / z`` leaves a flagged pose with the influence of a pose about ``c`` noise
+standard deviations off, and with few poses and high leverage that bias shows in the held-out
+accuracy (measured: 12 poses with 2 gross outliers, Huber's held-out prediction error is within
+1.5x of the clean fit's in only 24 of 100 draws). With ``reject_outliers`` the robust fit is
+followed by one more solve: least squares (weights 1, the same scale) on the poses that are
+*not* flagged, flagged ones with weight 0, warm started from the robust frames. This is the
+classical "skipped" or one-step-reweighted estimator (a robust fit to find the outliers, least
+squares on the rest; Rousseeuw & Leroy, *Robust Regression and Outlier Detection*, 1987). The
+refit is kept only when at least 4 poses remain, its rank equals the robust fit's (rejecting
+must not cost an identifiable direction) and it converged; otherwise the robust fit stands and
+``refit`` is false. Nothing is deleted: every pose stays in the result with its ``z`` and flag.
+
 Outliers. A pose is flagged when ``z_i > OUTLIER_THRESHOLD = 1.9347``: its squared Mahalanobis
 norm ``6 z_i^2`` exceeds the 99.9 % point of the chi-square distribution with 6 degrees of
 freedom (22.46), the same 0.1 % false-alarm rate as ``|z| > 3.29`` for a scalar residual. The
@@ -180,14 +193,19 @@ class RobustSolution(eqx.Module):
             weighted sum of squares) of the last round. Its histories count solves: ``delta_p``
             entry 0 is the nominal model, entry 1 the least-squares start (round 0), entry
             ``k + 1`` after round ``k``; ``step_norm[k]`` is the norm of the frame change
-            ``log(F_new F_old^-1)`` of that solve; ``iterations = rounds + 1``. ``result`` is
-            successful when the weights settled (and the last solve converged);
-            ``max_iterations_reached`` when ``max_rounds`` ran out first.
-        weights: ``(..., m)`` per-pose weights of the final fit, in ``(0, 1]``.
+            ``log(F_new F_old^-1)`` of that solve; ``iterations = rounds + 1`` (``+ 2`` after a
+            rejection refit, the last solve). ``result`` is successful when the weights
+            settled (and the last solve converged); ``max_iterations_reached`` when
+            ``max_rounds`` ran out first.
+        weights: ``(..., m)`` per-pose weights of the final fit, in ``(0, 1]`` (0 for the
+            poses left out of a rejection refit).
         z: ``(..., m)`` standardized residual of each pose at the final frames.
-        outliers: ``(..., m)`` bool, ``z > threshold``.
+        outliers: ``(..., m)`` bool, ``z > threshold`` at the robust fit (with a rejection
+            refit: the poses it left out).
         scale: ``(..., 2)`` residual scale ``(s_pos mm, s_rot rad)`` of the final assessment.
         rounds: ``(...)`` number of reweighted solves after the least-squares start.
+        refit: ``(...)`` bool, the final fit is the least-squares refit without the flagged
+            poses (``reject_outliers=True`` and the refit was kept).
         loss: loss name (``"huber"``, ``"cauchy"``).
         tuning: its tuning constant ``c``.
         threshold: the outlier threshold on ``z``.
@@ -200,6 +218,7 @@ class RobustSolution(eqx.Module):
     outliers: Array
     scale: Array
     rounds: Array
+    refit: Array
     loss: str = eqx.field(static=True)
     tuning: float = eqx.field(static=True)
     threshold: float = eqx.field(static=True)
@@ -337,6 +356,7 @@ def calibrate_robust(
     max_rounds: int = 30,
     weight_tol: float = 1e-4,
     threshold: float = OUTLIER_THRESHOLD,
+    reject_outliers: bool = False,
     max_iterations: int | None = None,
     rcond: float | None = None,
     allow_underdetermined: bool = False,
@@ -357,6 +377,8 @@ def calibrate_robust(
         max_rounds: cap on the reweighted solves after round 0 (static).
         weight_tol: stop when no pose weight changes by more than this in a round.
         threshold: flag poses with ``z > threshold`` as outliers.
+        reject_outliers: finish with a least-squares refit without the flagged poses (see the
+            module docstring; static).
         max_iterations: iteration cap of each inner solve (default: the solver's).
         rcond: relative singular-value cut-off of the inner solves (see :mod:`.linear`).
         allow_underdetermined: passed to the inner solver (fewer than 4 poses).
@@ -398,9 +420,10 @@ def calibrate_robust(
 
     n = arm.n_params
     dp_nom, dR_nom = deviation_metrics(measured, chain(nominal, poses)[0])
-    steps0 = jnp.full((max_rounds + 1,), nan)
-    dps0 = jnp.full((max_rounds + 2,), nan).at[0].set(dp_nom)
-    dRs0 = jnp.full((max_rounds + 2,), nan).at[0].set(dR_nom)
+    extra = int(bool(reject_outliers))  # history slots for the rejection refit
+    steps0 = jnp.full((max_rounds + 1 + extra,), nan)
+    dps0 = jnp.full((max_rounds + 2 + extra,), nan).at[0].set(dp_nom)
+    dRs0 = jnp.full((max_rounds + 2 + extra,), nan).at[0].set(dR_nom)
     ones = jnp.ones(m, dtype)
     if sigma is None:
         # Round 0 is the paper's unweighted fit; the scale comes from its residuals.
@@ -480,8 +503,41 @@ def calibrate_robust(
         jax.lax.while_loop(cond, body, carry0)
     )
     done = done | (max_rounds == 0)  # no reweighting asked for: the least-squares fit is it
+    outliers = z > threshold
+    refit = jnp.asarray(False)
+    if reject_outliers:
+        # Least squares on the unflagged poses (flagged: weight 0, i.e. infinite std).
+        w_in = jnp.where(outliers, 0.0, 1.0).astype(dtype)
+        sw = jnp.sqrt(w_in)
+        sol_r = solve(frames, NoiseModel(position_mm=scale[0] / sw, rotation_rad=scale[1] / sw))
+        refit = (
+            ok
+            & (jnp.sum(~outliers) >= 4)
+            & (sol_r.rank == rank)
+            & (sol_r.result == RESULTS.successful)
+            & jnp.all(jnp.isfinite(sol_r.frames))
+        )
+        z_r, scale_r = assess(jnp.where(refit, sol_r.frames, frames), sol_r.rank)
+
+        def take(new, old):
+            return jnp.where(refit, new, old)
+
+        steps = take(steps.at[k].set(change(sol_r.frames, frames)), steps)
+        dps = take(dps.at[k + 1].set(sol_r.final_delta_p), dps)
+        dRs = take(dRs.at[k + 1].set(sol_r.final_delta_R), dRs)
+        frames = take(sol_r.frames, frames)
+        w, z, scale = take(w_in, w), take(z_r, z), take(scale_r, scale)
+        rank, s, cost = (
+            take(sol_r.rank, rank),
+            take(sol_r.singular_values, s),
+            take(sol_r.cost, cost),
+        )
+        inner_ok = take(jnp.asarray(True), inner_ok)
+        k = k + refit
     ok = ok & jnp.all(jnp.isfinite(frames)) & jnp.all(jnp.isfinite(z))
     name = ("lm" if solver == "lm" else "weighted") + "+" + loss.name
+    if reject_outliers:
+        name += "+reject"
     sol = _assemble_solution(
         frames,
         nominal,
@@ -500,9 +556,10 @@ def calibrate_robust(
         solution=sol,
         weights=w,
         z=z,
-        outliers=z > threshold,
+        outliers=outliers,
         scale=scale,
-        rounds=k - 1,
+        rounds=k - 1 - refit,
+        refit=refit,
         loss=loss.name,
         tuning=float(loss.c),
         threshold=float(threshold),

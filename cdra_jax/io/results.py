@@ -28,7 +28,8 @@ Structure (see the README for a complete example; ``...`` marks repetition)::
       "outliers": {"threshold": 1.9347, "scale": {"position_mm": ..., "rotation_rad": ...,
                    "source": "noise model" | "MAD"}, "poses": ["p07"]},
       "robust": null | {"loss": "huber", "tuning_constant": 1.345, "rounds": 6,
-                        "inner_solver": "paper" | "lm"},
+                        "inner_solver": "paper" | "lm", "reject_outliers": false,
+                        "refit_without_flagged": false},
       "conditioning": null | {"condition_number": ..., "ill_conditioned": false, ...},
       "warnings": ["..."]
     }
@@ -279,6 +280,8 @@ def result_to_dict(
             "loss": robust.loss,
             "tuning_constant": float(robust.tuning),
             "rounds": int(robust.rounds),
+            "reject_outliers": robust.solution.solver.endswith("+reject"),
+            "refit_without_flagged": bool(robust.refit),
             "inner_solver": "lm" if solution.solver.startswith("lm") else "paper",
         },
         "conditioning": None if conditioning is None else _finite(dict(conditioning)),
@@ -319,8 +322,11 @@ def outlier_warning(
                 "robust loss, --loss huber, tells these apart)"
             )
         )
+    left_out = bool(order) and all(weights[i] == 0 for i in order)
     tail = (
-        "; the robust fit down-weighted them"
+        "; the final fit left them out (least-squares refit, --reject-outliers)"
+        if robust and left_out
+        else "; the robust fit down-weighted them"
         if robust
         else "; least squares gives them full weight: check them, or use a robust loss "
         "(--loss huber)"
