@@ -160,6 +160,23 @@ def residual_jacobian(
     return r.reshape(6 * m), (lin.delta_p, lin.delta_R), J.reshape(6 * m, n)
 
 
+def _residual(
+    X: Array, frames0: Array, poses: Array, measured: Array, noise: NoiseModel | None
+) -> tuple[Array, tuple[Array, Array]]:
+    """The residual and deviation metrics of :func:`residual_jacobian`, without the Jacobian.
+
+    The primal of the ``custom_jvp`` in :func:`_residual_fn`: JAX traces it next to the JVP
+    rule, so keeping it free of the Jacobian's operations shortens the tracing.
+    """
+    frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
+    tool, _ = kernels.chain(frames, poses)
+    r = kernels.residual(measured, tool)  # (6, m)
+    dp, dR = kernels.deviation_metrics(measured, tool)
+    if noise is not None:
+        r = kernels.whiten(r, measured, noise)
+    return r.reshape(-1), (dp, dR)
+
+
 def _sum6(term: Callable[[int], Array]) -> Array:
     """``term(0) + ... + term(5)``."""
     total = term(0)
@@ -174,8 +191,7 @@ def _residual_fn(frames0, poses, measured, noise, basis):
 
     @jax.custom_jvp
     def residual(u):
-        r, aux, _ = residual_jacobian(basis @ u, frames0, poses, measured, noise)
-        return r, aux
+        return _residual(basis @ u, frames0, poses, measured, noise)
 
     @residual.defjvp
     def _jvp(primals, tangents):
@@ -199,8 +215,10 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         T = kernels.pose_stack(measured)
         return P, T, noise
 
-    def optx_state(fn, y0):
-        f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, None))
+    def optx_state(fn, y0, m):
+        # The output structure of fn, without tracing it: r (6m,) and the metrics (dp, dR).
+        scalar = jax.ShapeDtypeStruct((), y0.dtype)
+        f_struct, aux_struct = jax.ShapeDtypeStruct((6 * m,), y0.dtype), (scalar, scalar)
         state0 = solver.init(fn, y0, None, options, f_struct, aux_struct, tags)
         # The trust region's step size is 1 / damping (optimistix' DampedNewtonDescent).
         step_size = state0.search_state.step_size
@@ -221,7 +239,7 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         u0 = jnp.zeros(basis.shape[-1], dtype)
         nan = jnp.asarray(jnp.nan, dtype)
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
-        dyn_state, static_state = optx_state(fn, u0)
+        dyn_state, static_state = optx_state(fn, u0, T.shape[-1])
         carry = (
             jnp.asarray(0),
             u0,
