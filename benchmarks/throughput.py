@@ -126,6 +126,44 @@ def time_jax(
     )
 
 
+def time_jax_calls(solve: Callable, q: np.ndarray, T: np.ndarray, per_call: int) -> dict:
+    """trials/s of a batch too large for one call: calls of ``per_call`` trials in sequence.
+
+    One program is compiled for ``per_call`` trials (the last call is padded to that size with
+    copies of its first trial; the padding's work is not counted) and the whole batch runs once,
+    call after call, as :mod:`cdra_jax.sweeps` runs large sweeps. The inputs of each call are
+    moved to the device before its clock starts, and its outputs are discarded after it.
+    """
+    n = q.shape[0]
+    fn = jax.jit(jax.vmap(solve))
+    t0 = time.perf_counter()
+    compiled = fn.lower(jnp.asarray(q[:per_call]), jnp.asarray(T[:per_call])).compile()
+    compile_s = time.perf_counter() - t0
+    total = 0.0
+    converged = 0
+    for a in range(0, n, per_call):
+        qa, Ta = q[a : a + per_call], T[a : a + per_call]
+        pad = per_call - qa.shape[0]
+        if pad:
+            qa = np.concatenate([qa, np.repeat(qa[:1], pad, axis=0)])
+            Ta = np.concatenate([Ta, np.repeat(Ta[:1], pad, axis=0)])
+        qj, Tj = jnp.asarray(qa), jnp.asarray(Ta)
+        _block((qj, Tj))
+        t0 = time.perf_counter()
+        sol = _block(compiled(qj, Tj))
+        total += (time.perf_counter() - t0) * (per_call - pad) / per_call
+        converged += int(np.sum(np.asarray(sol.converged)[: per_call - pad]))
+        del sol, qj, Tj
+    return dict(
+        compile_s=compile_s,
+        steady_s=total,
+        trials_per_s=n / total,
+        all_s=[total],
+        converged=converged / n,
+        calls=-(-n // per_call),
+    )
+
+
 def time_per_trial(run_one: Callable[[int], dict], n: int) -> dict:
     """Run ``run_one(i)`` for ``i < n`` in chunks; median per-trial time over the chunks."""
     bounds = np.linspace(0, n, min(_N_CHUNKS, n) + 1).astype(int)
@@ -271,13 +309,12 @@ def scaling(args) -> dict:
             if s == "lm" and n > args.lm_max_trials:
                 row[s] = None
                 continue
-            r = time_jax(
-                lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False),
-                q,
-                T,
-                _scaling_repeats(args.repeats, n),
-                first_call=False,
-            )
+            solve = lambda qq, TT, f=fns[s]: f(arm, qq, TT, throw=False)  # noqa: E731
+            if n > args.max_call:
+                r = time_jax_calls(solve, q, T, args.max_call)
+                row[f"{s}_calls"] = r["calls"]
+            else:
+                r = time_jax(solve, q, T, _scaling_repeats(args.repeats, n), first_call=False)
             row[s] = r["trials_per_s"]
             row[f"{s}_compile_s"] = r["compile_s"]
             row[f"{s}_repeats"] = len(r["all_s"])
@@ -360,6 +397,12 @@ def main(argv: list[str] | None = None) -> dict:
     )
     p.add_argument("--scaling-poses", type=int, nargs="+", default=[5, 10, 15, 30, 60, 100, 200])
     p.add_argument("--scaling-n", type=int, default=10_000, help="N of the pose-count sweep")
+    p.add_argument(
+        "--max-call",
+        type=int,
+        default=100_000,
+        help="scaling: a batch above this many trials runs as calls of this size (one compile)",
+    )
     p.add_argument(
         "--lm-max-trials", type=int, default=100_000, help="largest N the LM scaling runs"
     )
