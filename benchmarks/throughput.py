@@ -52,6 +52,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import baselines  # noqa: E402
 
 from cdra_jax import NoiseModel, calibrate_lm, calibrate_paper, default_arm  # noqa: E402
+from cdra_jax.parallel import split_over_devices, use_cpu_devices  # noqa: E402
 from cdra_jax.simulation import simulate_trial  # noqa: E402
 
 SOLVERS = ("paper", "lm", "numpy", "numpy_vec", "scipy")
@@ -118,6 +119,34 @@ def time_jax(
     steady = statistics.median(times)
     return dict(
         compile_s=compile_s,
+        first_call_s=first_s,
+        steady_s=steady,
+        trials_per_s=q.shape[0] / steady,
+        all_s=times,
+        solution=sol,
+    )
+
+
+def time_jax_split(
+    solve: Callable, q: np.ndarray, T: np.ndarray, repeats: int, devices: list
+) -> dict:
+    """As :func:`time_jax`, with the batch split into one part per device
+    (:func:`cdra_jax.parallel.split_over_devices`: the parts run at the same time, each device
+    with its own compiled program). ``compile_s`` is the first call (it compiles for every
+    device); the steady state includes moving each part to its device and the results back."""
+    fn = jax.jit(jax.vmap(solve))
+    t0 = time.perf_counter()
+    split_over_devices(fn, (q, T), devices)
+    first_s = time.perf_counter() - t0
+    times = []
+    sol = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sol = split_over_devices(fn, (q, T), devices)
+        times.append(time.perf_counter() - t0)
+    steady = statistics.median(times)
+    return dict(
+        compile_s=first_s,
         first_call_s=first_s,
         steady_s=steady,
         trials_per_s=q.shape[0] / steady,
@@ -196,10 +225,18 @@ def run(args) -> dict:
         f", {args.dtype}",
         flush=True,
     )
-    for name, fn in (("paper", calibrate_paper), ("lm", calibrate_lm)):
-        if name not in args.solvers:
+    devices = jax.devices()
+    runs = [(name, fn, 1) for name, fn in (("paper", calibrate_paper), ("lm", calibrate_lm))]
+    if len(devices) > 1:
+        runs += [(f"{name}_x{len(devices)}", fn, len(devices)) for name, fn, _ in list(runs)]
+    for name, fn, n_dev in runs:
+        if name.split("_x")[0] not in args.solvers:
             continue
-        r = time_jax(lambda qq, TT, fn=fn: fn(arm, qq, TT, throw=False), q, T, args.repeats)
+        solve = lambda qq, TT, fn=fn: fn(arm, qq, TT, throw=False)  # noqa: E731
+        if n_dev == 1:
+            r = time_jax(solve, q, T, args.repeats)
+        else:
+            r = time_jax_split(solve, q, T, args.repeats, devices)
         sol = r.pop("solution")
         r["errors"] = np.asarray(sol.errors)
         r["converged"] = float(np.mean(np.asarray(sol.converged)))
@@ -254,11 +291,9 @@ def print_table(res: dict, n_base: int, n_trials: int) -> None:
     )
     print(head)
     print("-" * len(head))
-    for name in SOLVERS:
-        if name not in res:
-            continue
+    for name in sorted(res, key=lambda k: (SOLVERS.index(k.split("_x")[0]), k)):
         r = res[name]
-        n = n_trials if name in ("paper", "lm") else n_base
+        n = n_trials if name.split("_x")[0] in ("paper", "lm") else n_base
         comp = f"{r['compile_s']:10.2f}" if "compile_s" in r else f"{'-':>10s}"
         first = f"{r['first_call_s']:8.2f}" if "first_call_s" in r else f"{'-':>8s}"
         print(
@@ -388,6 +423,13 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=SOLVERS)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=1,
+        help="CPU devices (cdra_jax.parallel.use_cpu_devices): with N > 1 the JAX solvers are "
+        "also timed with the batch split over N devices (rows paper_xN, lm_xN)",
+    )
     p.add_argument("--scaling", action="store_true", help="trials/s against N and m instead")
     p.add_argument(
         "--scaling-trials",
@@ -407,6 +449,8 @@ def main(argv: list[str] | None = None) -> dict:
         "--lm-max-trials", type=int, default=100_000, help="largest N the LM scaling runs"
     )
     args = p.parse_args(argv)
+    if args.devices > 1:
+        use_cpu_devices(args.devices)  # before JAX starts its CPU backend
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
 

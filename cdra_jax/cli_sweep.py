@@ -83,6 +83,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--d-v", metavar="MM", type=float, default=1.0, help="preset error range, mm")
     p.add_argument("--d-w", metavar="RAD", type=float, default=0.05, help="preset error, rad")
     p.add_argument("--verify", metavar="K", type=int, default=50, help="held-out states (50)")
+    p.add_argument(
+        "--cpu-devices",
+        metavar="N",
+        type=int,
+        help="on a CPU, run as N XLA devices, one part of every chunk each (default: one per "
+        "core; 1 for a single device)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.set_defaults(func=run)
@@ -93,6 +100,19 @@ def run(args: argparse.Namespace) -> int:
     """Run ``sweep``; returns the exit code (0)."""
     import jax
 
+    from .parallel import use_cpu_devices
+
+    if args.cpu_devices is not None and args.cpu_devices < 1:
+        raise ValueError(f"--cpu-devices must be at least 1, got {args.cpu_devices}")
+    # Before JAX starts: every core as a CPU device (no effect on a GPU host's devices). Called
+    # from a process where JAX already runs (e.g. a notebook), the default keeps its devices.
+    if args.cpu_devices is not None:
+        use_cpu_devices(args.cpu_devices)
+    else:
+        try:
+            use_cpu_devices()
+        except RuntimeError:
+            pass
     jax.config.update("jax_enable_x64", True)
     from .sweeps import parse_noise_levels, run_sweep
 

@@ -33,11 +33,12 @@ errors and standardised noise). Chunking and sharding therefore never change a r
 
 Execution: for each (pose count, solver) one function ``vmap``-ed over trials is jitted and
 applied chunk by chunk (``chunk`` trials at a time, the last chunk padded), so memory stays
-bounded by the chunk whatever the number of trials. The trial axis of each chunk is sharded
-over ``jax.devices()`` (``NamedSharding`` on a 1-D mesh), so a multi-GPU host (or a CPU with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N``) runs chunks in parallel with the same
-code. Results are a tidy table, one row per trial (:class:`SweepTable`), saved as CSV or, where
-pyarrow is installed, Parquet.
+bounded by the chunk whatever the number of trials. Each chunk is split into one part per
+device of ``jax.devices()`` (:func:`cdra_jax.parallel.split_over_devices`), and the parts run at
+the same time, so a multi-GPU host, or a CPU presented as several devices
+(:func:`cdra_jax.parallel.use_cpu_devices`, which ``cdra-jax sweep`` calls), uses all of them
+with the same code. Results are a tidy table, one row per trial (:class:`SweepTable`), saved as
+CSV or, where pyarrow is installed, Parquet.
 """
 
 from __future__ import annotations
@@ -56,7 +57,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import lie
 from .arm import Arm, apply_frame_errors, chain, module_poses, tool_pose
@@ -71,6 +71,7 @@ from .calibration import (
 from .calibration.linear import default_rcond
 from .calibration.validation import MIN_POSES
 from .io.files import write_file_atomic
+from .parallel import check_devices, split_over_devices
 from .simulation import StateSampler, simulate_trial
 
 SOLVERS: tuple[str, ...] = ("paper", "weighted", "lm")
@@ -436,19 +437,12 @@ def _batched_trials(
     m_verify: int,
     sampler: StateSampler | None,
     max_iterations: int | None,
-    devices: tuple[jax.Device, ...],
 ) -> Callable:
-    """The jitted, vmapped and sharded trial function of one cell (cached across sweeps, so a
-    repeated sweep with the same settings and chunk size does not compile again)."""
-    mesh = Mesh(np.asarray(devices), ("trials",))
-    trials = NamedSharding(mesh, PartitionSpec("trials"))
-    replicated = NamedSharding(mesh, PartitionSpec())
+    """The jitted and vmapped trial function of one cell (cached across sweeps, so a repeated
+    sweep with the same settings and chunk size does not compile again; JAX compiles it once
+    per device it runs on)."""
     f = _trial_function(m, solver, noisy, d_v, d_w, m_verify, sampler, max_iterations)
-    return jax.jit(
-        jax.vmap(f, in_axes=(None, None, 0, 0, 0)),
-        in_shardings=(replicated, replicated, trials, trials, trials),
-        out_shardings=trials,
-    )
+    return jax.jit(jax.vmap(f, in_axes=(None, None, 0, 0, 0)))
 
 
 @dataclass(frozen=True)
@@ -516,7 +510,9 @@ def run_sweep(
             :func:`cdra_jax.modules.sample_feasible_states`; modules without cables stay
             uniform). Pass :func:`cdra_jax.simulation.sample_states` for plain uniform states.
         max_iterations: solver iteration cap (default: each solver's own).
-        devices: devices to shard the trial axis over (default ``jax.devices()``).
+        devices: devices to split every chunk over (default ``jax.devices()``); several CPU
+            devices need a large enough thread pool (:func:`cdra_jax.parallel.check_devices`,
+            ``ValueError`` otherwise).
         progress: show a tqdm progress bar (only when stderr is a terminal).
 
     Returns:
@@ -547,9 +543,9 @@ def run_sweep(
     if trials < 1 or chunk < 1 or m_verify < 1:
         raise ValueError(f"trials ({trials}), chunk ({chunk}), m_verify ({m_verify}) must be >= 1")
     devices = list(jax.devices() if devices is None else devices)
+    check_devices(devices)
     n_dev = len(devices)
     chunk = -(-int(chunk) // n_dev) * n_dev
-    sharding = NamedSharding(Mesh(np.asarray(devices), ("trials",)), PartitionSpec("trials"))
     dtype = jnp.asarray(arm.frames).dtype
     base = jax.random.PRNGKey(seed)
     cells = _cells(levels, pose_counts, solvers, int(trials))
@@ -568,7 +564,6 @@ def run_sweep(
                 int(m_verify),
                 sampler,
                 max_iterations,
-                tuple(devices),
             )
             n = len(cell.trials)
             for start in range(0, n, chunk):
@@ -576,11 +571,8 @@ def run_sweep(
                 pad = chunk - (stop - start)
                 tr = np.pad(cell.trials[start:stop], (0, pad), mode="edge")
                 lv = np.pad(cell.levels[start:stop], ((0, pad), (0, 0)), mode="edge")
-                args = [
-                    jax.device_put(np.asarray(a), sharding)
-                    for a in (tr.astype(np.int32), lv[:, 0].astype(dtype), lv[:, 1].astype(dtype))
-                ]
-                out = jax.device_get(batched(arm, base, *args))
+                args = (tr.astype(np.int32), lv[:, 0].astype(dtype), lv[:, 1].astype(dtype))
+                out = split_over_devices(batched, args, devices, arm, base)
                 out = {k: np.asarray(v)[: stop - start] for k, v in out.items()}
                 out["trial"] = cell.trials[start:stop]
                 out["noise_pos"] = cell.levels[start:stop, 0]

@@ -10,14 +10,19 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_on_two_cpu_devices(script: str, timeout: float | None = None) -> None:
-    """Run ``script`` with ``--xla_force_host_platform_device_count=2`` (the flag must be set
-    before JAX starts, hence the subprocess) and the checkout on ``PYTHONPATH``; fail the test
-    with the end of its stderr when it exits non-zero."""
+def run_on_two_cpu_devices(script: str, timeout: float | None = None, forced: bool = True) -> None:
+    """Run ``script`` in a fresh Python with the checkout on ``PYTHONPATH``; fail the test with
+    the end of its stderr when it exits non-zero. ``forced``: with
+    ``--xla_force_host_platform_device_count=2`` (the flag must be set before JAX starts, hence
+    the subprocess); otherwise the script sets up its devices itself (``use_cpu_devices``).
+    ``PJRT_NPROC`` is removed from the environment: each script decides the pool size."""
     env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
-    ).strip()
+    env.pop("PJRT_NPROC", None)
+    env.pop("NPROC", None)
+    if forced:
+        env["XLA_FLAGS"] = (
+            env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+        ).strip()
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     proc = subprocess.run(
         [sys.executable, "-c", script],

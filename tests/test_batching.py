@@ -48,32 +48,33 @@ def test_chunked_vmap_equals_vmap():
 
 
 @pytest.mark.slow
-def test_lm_runs_with_the_batch_sharded_over_two_cpu_devices():
-    """The chunked LM solver, jitted with the trial axis sharded over 2 (forced host) devices as
-    the sweeps do (weighted, with noise), finishes and gives the unsharded results. A work queue
-    (a data-dependent gather of trials inside a loop) deadlocked there. The paper solver is
-    checked the same way by tests/test_sweeps.py. In a subprocess, with a timeout."""
+def test_solvers_split_over_two_cpu_devices_finish_and_match():
+    """Both chunked solvers on 2 x 128 trials split over 2 CPU devices (``use_cpu_devices``,
+    as ``cdra-jax sweep`` and ``benchmarks/throughput.py --devices 2`` run them) finish and give
+    the one-device results. With a pool of 2 threads (no ``PJRT_NPROC``) this hung in
+    batched LAPACK (``cdra_jax.parallel``); a work queue (a data-dependent gather of trials inside
+    a loop) deadlocked there too. In a subprocess, with a timeout."""
     script = textwrap.dedent(
         """
+        from cdra_jax.parallel import split_over_devices, use_cpu_devices
+        use_cpu_devices(2)
         import jax
         jax.config.update("jax_enable_x64", True)
         import numpy as np
-        from jax.sharding import Mesh, NamedSharding, PartitionSpec
-        from cdra_jax import NoiseModel, calibrate_lm, default_arm, simulation
+        from cdra_jax import NoiseModel, calibrate_lm, calibrate_paper, default_arm, simulation
         assert len(jax.devices()) == 2, jax.devices()
         arm, noise = default_arm(), NoiseModel(0.05, 1e-3)
-        keys = jax.random.split(jax.random.PRNGKey(0), 4)
-        q, T, *_ = jax.vmap(lambda k: simulation.simulate_trial(k, arm, 5, noise=noise))(keys)
-        sh = NamedSharding(Mesh(np.asarray(jax.devices()), ("t",)), PartitionSpec("t"))
-        f = jax.vmap(lambda q, T: calibrate_lm(arm, q, T, noise, throw=False))
-        sol = jax.jit(f, in_shardings=(sh, sh), out_shardings=sh)(
-            jax.device_put(q, sh), jax.device_put(T, sh)
-        )
-        assert len(sol.errors.sharding.device_set) == 2
-        assert np.all(np.asarray(sol.converged))
-        ref = jax.jit(f)(q, T)
-        np.testing.assert_allclose(sol.errors, ref.errors, rtol=0, atol=1e-9)
-        np.testing.assert_array_equal(sol.iterations, ref.iterations)
+        keys = jax.random.split(jax.random.PRNGKey(0), 256)
+        sim = jax.vmap(lambda k: simulation.simulate_trial(k, arm, 15, noise=noise))
+        q, T, *_ = jax.jit(sim)(keys)
+        q, T = np.asarray(q), np.asarray(T)
+        for solve in (calibrate_paper, calibrate_lm):
+            f = jax.jit(jax.vmap(lambda q, T: solve(arm, q, T, noise, throw=False)))
+            sol = split_over_devices(f, (q, T), jax.devices())
+            assert np.all(sol.converged), solve
+            ref = f(q, T)
+            np.testing.assert_allclose(sol.errors, ref.errors, rtol=0, atol=1e-9)
+            np.testing.assert_array_equal(sol.iterations, ref.iterations)
         """
     )
-    run_on_two_cpu_devices(script, timeout=240)
+    run_on_two_cpu_devices(script, timeout=300, forced=False)

@@ -132,36 +132,85 @@ def test_every_pose_a_sweep_draws_has_tension_closure(cdra, table, monkeypatch):
     assert np.asarray(arm_tension_closure(cdra, q, DEFAULT_MIN_MARGIN)).all()
 
 
+@pytest.fixture(scope="module")
+def three_solvers(cdra):
+    return run_sweep(
+        cdra,
+        LEVELS,
+        [5],
+        trials=3,
+        **{**CELL, "solvers": ["paper", "weighted", "lm"]},
+    )
+
+
 @pytest.mark.slow
-def test_sharded_over_two_devices_matches(table, tmp_path):
-    """The same sweep on 2 (forced host) devices in a subprocess gives the same rows."""
-    out = tmp_path / "sharded.csv"
+def test_split_over_two_cpu_devices_matches(three_solvers, tmp_path):
+    """The same sweep (all three solvers) on 2 CPU devices, started by
+    ``use_cpu_devices(2)`` in a fresh process, gives the same rows, and both devices work."""
+    out = tmp_path / "two.csv"
     script = textwrap.dedent(
         f"""
+        from cdra_jax.parallel import cpu_pool_threads, schedulable_cores, use_cpu_devices
+        use_cpu_devices(2)  # before JAX starts
         import jax
         jax.config.update("jax_enable_x64", True)
         import numpy as np
         from cdra_jax import default_arm
+        from cdra_jax.parallel import split_over_devices
         from cdra_jax.sweeps import _batched_trials, run_sweep
         assert len(jax.devices()) == 2, jax.devices()
+        assert cpu_pool_threads() > 2, cpu_pool_threads()
         arm = default_arm()
-        t = run_sweep(arm, {LEVELS!r}, [5], trials=3, solvers=["weighted"], seed=7, chunk=4,
-                      m_verify=10, progress=False)
+        t = run_sweep(arm, {LEVELS!r}, [5], trials=3,
+                      solvers=["paper", "weighted", "lm"], seed=7, chunk=4, m_verify=10,
+                      progress=False)
         assert t.meta["devices"].count("cpu") == 2, t.meta["devices"]
         t.save({str(out)!r})
-        f = _batched_trials(5, "weighted", True, 1.0, 0.05, 10, None, None, tuple(jax.devices()))
-        mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("trials",))
-        sh = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("trials"))
-        tr = jax.device_put(np.arange(4, dtype=np.int32), sh)
-        nz = jax.device_put(np.full(4, 0.1), sh)
-        o = f(arm, jax.random.PRNGKey(7), tr, nz, nz * 0.01)
-        assert len(o["dp_fit"].sharding.device_set) == 2
+        f = _batched_trials(5, "weighted", True, 1.0, 0.05, 10, None, None)
+        tr = np.arange(4, dtype=np.int32)
+        nz = np.full(4, 0.1)
+        o = split_over_devices(f, (tr, nz, nz * 0.01), jax.devices(), arm, jax.random.PRNGKey(7))
+        assert o["dp_fit"].shape == (4,) and np.all(np.isfinite(o["dp_fit"]))
+        """
+    )
+    run_on_two_cpu_devices(script, forced=False)
+    split = read_sweep(out)
+    assert len(split) == len(three_solvers) == 3 * 2 * 3
+    _assert_same_rows(three_solvers, split)
+
+
+def _assert_same_rows(a, b):
+    """Row by row (same order: m, solver, level, trial), floats to 1e-9."""
+    assert len(a) == len(b)
+    for c in COLUMNS:
+        x, y = a[c], b[c]
+        if c in FLOATS and x.dtype.kind == "f":
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12, err_msg=c)
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=c)
+
+
+@pytest.mark.slow
+def test_two_cpu_devices_with_a_small_pool_are_refused(tmp_path):
+    """Two CPU devices and a pool of 2 threads would hang in batched LAPACK: a clear error."""
+    script = textwrap.dedent(
+        r"""
+        import os
+        os.environ["PJRT_NPROC"] = "2"
+        import jax
+        assert len(jax.devices()) == 2
+        import pytest
+        from cdra_jax import default_arm
+        from cdra_jax.sweeps import run_sweep
+        msg = "2 CPU devices with a thread pool of 2: .* would hang"
+        with pytest.raises(ValueError, match=msg):
+            run_sweep(default_arm(), [(0.08, 1e-3)], [5], trials=2, progress=False)
+        from cdra_jax.parallel import use_cpu_devices
+        with pytest.raises(RuntimeError, match=r"use_cpu_devices\(3\) must run before JAX starts"):
+            use_cpu_devices(3)
         """
     )
     run_on_two_cpu_devices(script)
-    sharded = read_sweep(out)
-    assert len(sharded) == len(table)
-    _assert_same_trials(table, sharded)
 
 
 def test_csv_round_trip_and_errors(table, tmp_path):
