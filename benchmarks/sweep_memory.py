@@ -37,13 +37,16 @@ def _peak_mib() -> float:
 
 def child(args) -> dict:
     sys.path.insert(0, str(ROOT))
+    from cdra_jax.parallel import use_cpu_devices
+
+    use_cpu_devices(args.cpu_devices)  # before JAX starts; default one device per core
     import jax
 
     jax.config.update("jax_enable_x64", True)
     from cdra_jax import default_arm
     from cdra_jax.sweeps import run_sweep
 
-    out = {"trials": args.child, "after_import_mib": _peak_mib()}
+    out = {"trials": args.child, "after_import_mib": _peak_mib(), "devices": len(jax.devices())}
     arm = default_arm()
     kw = dict(
         noise_levels=[(args.noise_pos, args.noise_rot)],
@@ -84,6 +87,9 @@ def main(argv=None) -> int:
     ap.add_argument("--noise-pos", type=float, default=0.08)
     ap.add_argument("--noise-rot", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--cpu-devices", type=int, help="XLA:CPU devices (default: one per core, as the CLI)"
+    )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -92,8 +98,9 @@ def main(argv=None) -> int:
     results = []
     for n in args.sizes:
         cmd = [sys.executable, __file__, "--child", str(n)]
-        for flag in ("chunk", "poses", "solver", "noise_pos", "noise_rot", "seed"):
-            cmd += [f"--{flag.replace('_', '-')}", str(getattr(args, flag))]
+        for flag in ("chunk", "poses", "solver", "noise_pos", "noise_rot", "seed", "cpu_devices"):
+            if getattr(args, flag) is not None:
+                cmd += [f"--{flag.replace('_', '-')}", str(getattr(args, flag))]
         proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ))
         if proc.returncode != 0:
             print(proc.stderr[-2000:], file=sys.stderr)
@@ -106,7 +113,7 @@ def main(argv=None) -> int:
             f"{r['after_sweep_mib']:.0f} after the sweep, {r['after_csv_mib']:.0f} after the CSV "
             f"({r['csv_mib']:.0f} MiB); sweep {r['sweep_s']:.1f} s "
             f"({r['trials_per_s']:.0f} trials/s), compile+first chunk "
-            f"{r['compile_and_first_chunk_s']:.1f} s",
+            f"{r['compile_and_first_chunk_s']:.1f} s; {r['devices']} device(s)",
             flush=True,
         )
     if results:

@@ -34,7 +34,7 @@ def sample_states(key: Array, arm: Arm, m: int, dtype=None) -> Array:
     return lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
 
 
-def sample_poses(key: Array, arm: Arm, m: int, dtype=None) -> Array:
+def sample_poses(key: Array, arm: Arm, m: int, dtype=None, *, throw: bool = True) -> Array:
     """Section V step 1: ``m`` states within the joint limits that the arm can hold: ``(m, dof)``.
 
     When a module of ``arm`` has cables in the model, states are drawn uniformly within the
@@ -43,14 +43,15 @@ def sample_poses(key: Array, arm: Arm, m: int, dtype=None) -> Array:
     modules without cables impose no condition and stay uniform within their limits. Without
     cables anywhere this is :func:`sample_states`. Jit- and vmap-able (a fixed number of draws;
     raises at run time in the rare case that too few of them are feasible, see
-    :func:`~cdra_jax.modules.sample_feasible_states`). The default sampler of
-    :func:`simulate_trial` (and so of the sweeps), of the paper reproduction, of
-    ``cdra-jax simulate`` and of the pose-selection pool.
+    :func:`~cdra_jax.modules.sample_feasible_states`; ``throw=False``: NaN states instead).
+    The default sampler of :func:`simulate_trial`, of the paper reproduction, of
+    ``cdra-jax simulate`` and of the pose-selection pool; the sweeps use it with
+    ``throw=False``.
     """
     if any(mod.n_cables > 0 for mod in arm.modules):
         from .modules.tension import sample_feasible_states
 
-        return sample_feasible_states(key, arm, m, dtype)
+        return sample_feasible_states(key, arm, m, dtype, throw=throw)
     return sample_states(key, arm, m, dtype)
 
 

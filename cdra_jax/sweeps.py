@@ -72,7 +72,7 @@ from .calibration.linear import default_rcond
 from .calibration.validation import MIN_POSES
 from .io.files import write_file_atomic
 from .parallel import check_devices, split_over_devices
-from .simulation import StateSampler, simulate_trial
+from .simulation import StateSampler, sample_poses, simulate_trial
 
 SOLVERS: tuple[str, ...] = ("paper", "weighted", "lm")
 DEFAULT_CHUNK = 4096
@@ -370,7 +370,10 @@ def _identifiable_error(arm_true: Arm, q: jax.Array, frames: jax.Array) -> tuple
     _, after = chain(arm_true.frames, module_poses(arm_true, q))
     D = calibration_jacobian(after)
     D = D.reshape(-1, D.shape[-1])
-    _, s, Vt = jnp.linalg.svd(D, full_matrices=False)
+    # The right singular vectors and singular values of D are those of the triangular factor
+    # of its QR (D = Q R): an SVD of the n x n R instead of the 6m x n D (one pass cheaper).
+    R = jnp.linalg.qr(D, mode="r")
+    _, s, Vt = jnp.linalg.svd(R, full_matrices=False)
     keep = s > default_rcond(D.dtype) * s[0]
     coef = jnp.where(keep, Vt @ e.reshape(-1), 0.0)
     pe = (Vt.T @ coef).reshape(e.shape)
@@ -387,14 +390,21 @@ def _trial_function(
     sampler: StateSampler | None,
     max_iterations: int | None,
 ) -> Callable:
-    """``f(arm, base_key, trial, noise_pos, noise_rot) -> dict`` of one trial's outputs."""
+    """``f(arm, base_key, trial, noise_pos, noise_rot) -> dict`` of one trial's outputs.
+
+    The default sampler runs with ``throw=False``: a trial whose draws hold too few feasible
+    states gets NaN states and ends ``nonfinite`` instead of stopping the sweep, and the
+    program holds no host callback (with one, XLA:CPU ran the devices' parts one after the
+    other: measured 2.08 s for two halves of 1.01 s each).
+    """
+    draw = sampler if sampler is not None else functools.partial(sample_poses, throw=False)
 
     def f(arm, base, trial, sp, sr):
         dtype = jnp.asarray(arm.frames).dtype
         key = jax.random.fold_in(jax.random.fold_in(base, m), trial)
         noise = NoiseModel(sp.astype(dtype), sr.astype(dtype)) if noisy else None
         q_cal, T_cal, q_ver, T_ver, X = simulate_trial(
-            key, arm, m, d_v=d_v, d_w=d_w, noise=noise, m_verify=m_verify, sampler=sampler
+            key, arm, m, d_v=d_v, d_w=d_w, noise=noise, m_verify=m_verify, sampler=draw
         )
         kw = {} if max_iterations is None else {"max_iterations": max_iterations}
         if solver == "paper":

@@ -145,6 +145,13 @@ def test_sampler_raises_when_too_few_states_are_feasible(cdra):
     arm = Arm(frames=cdra.frames[:2], modules=(elbow,), frame_names=("base", "tool"))
     with pytest.raises(Exception, match="fewer than m of the oversample"):
         jax.block_until_ready(_sample(jax.random.PRNGKey(0), arm, 4))
+    # throw=False (the sweeps): NaN states for that batch element only, so its solve ends
+    # nonfinite while the others go on
+    both = jax.vmap(lambda k, a: sample_feasible_states(k, a, 4, throw=False), in_axes=(0, None))
+    q = np.asarray(both(jax.random.split(jax.random.PRNGKey(0), 2), arm))
+    assert q.shape == (2, 4, 1) and np.all(np.isnan(q))
+    ok = np.asarray(sample_feasible_states(jax.random.PRNGKey(0), cdra, 4, throw=False))
+    np.testing.assert_array_equal(ok, np.asarray(_sample(jax.random.PRNGKey(0), cdra, 4)))
 
 
 def test_arm_closure_gives_the_verdicts_of_tension_closure_and_hull_margin(cdra):

@@ -294,6 +294,7 @@ def sample_feasible_states(
     *,
     min_margin: float | ArrayLike = DEFAULT_MIN_MARGIN,
     oversample: int = 4,
+    throw: bool = True,
 ) -> Array:
     """``m`` module states uniform within the joint limits and with tension closure: ``(m, dof)``.
 
@@ -302,7 +303,10 @@ def sample_feasible_states(
     has :func:`closure_margin` at or below ``min_margin``, and returns the first ``m`` accepted
     ones in draw order (so the result is uniform over the feasible part of the joint box).
     Jit- and vmap-able; raises at run time (``equinox`` runtime error) when fewer than ``m`` of
-    the draws are feasible: raise ``oversample`` or lower ``min_margin``.
+    the draws are feasible: raise ``oversample`` or lower ``min_margin``. With ``throw=False``
+    it returns NaN states instead (per batch element under ``vmap``), so that a solver given
+    them ends with a ``nonfinite`` result for that trial alone; the program then holds no host
+    callback, which lets several devices run it at the same time (the sweeps do this).
 
     The draws are tested in draw order, a block of ``max(8, ceil(m / 8))`` at a time (a
     ``lax.while_loop``), until ``m`` are accepted: a model whose joint box is mostly feasible
@@ -335,6 +339,8 @@ def sample_feasible_states(
     _, ok = lax.while_loop(more, test_block, (0, jnp.zeros(blocks * block, bool)))
     ok = ok[:n]
     out = cand[jnp.flatnonzero(ok, size=m)]  # the first m accepted, in draw order
+    if not throw:
+        return jnp.where(jnp.sum(ok) < m, jnp.nan, out)
     return eqx.error_if(
         out,
         jnp.sum(ok) < m,
