@@ -37,9 +37,11 @@ def _peak_mib() -> float:
 
 def child(args) -> dict:
     sys.path.insert(0, str(ROOT))
+    from cdra_jax.cli_sweep import default_cpu_devices
     from cdra_jax.parallel import use_cpu_devices
 
-    use_cpu_devices(args.cpu_devices)  # before JAX starts; default one device per core
+    # Before JAX starts; by default as cdra-jax sweep chooses for a cell of this many trials.
+    use_cpu_devices(args.cpu_devices or default_cpu_devices(args.child))
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -88,7 +90,7 @@ def main(argv=None) -> int:
     ap.add_argument("--noise-rot", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--cpu-devices", type=int, help="XLA:CPU devices (default: one per core, as the CLI)"
+        "--cpu-devices", type=int, help="XLA:CPU devices (default: as cdra-jax sweep chooses)"
     )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

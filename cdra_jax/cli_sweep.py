@@ -47,6 +47,22 @@ def _names(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
+TRIALS_PER_EXTRA_DEVICE = 50_000
+"""Trials of a cell (one pose count and solver) that pay for one more CPU device.
+
+Every device compiles each cell once more (about 8 s for the weighted solver on this project's
+2-core machine), and the second core gives 1920 -> 2608 trials/s (m = 15, weighted): the extra
+compilation is paid back after about 60,000 trials (``docs``: README, sweeps, "Both cores")."""
+
+
+def default_cpu_devices(trials_per_cell: int) -> int:
+    """CPU devices for a sweep: one per :data:`TRIALS_PER_EXTRA_DEVICE` trials of a cell (at
+    least 1), at most one per core."""
+    from .parallel import schedulable_cores
+
+    return max(1, min(schedulable_cores(), trials_per_cell // TRIALS_PER_EXTRA_DEVICE))
+
+
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``sweep`` subcommand (``func`` = :func:`run`)."""
     p = subparsers.add_parser(
@@ -88,7 +104,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         metavar="N",
         type=int,
         help="on a CPU, run as N XLA devices, one part of every chunk each (default: one per "
-        "core; 1 for a single device)",
+        f"{TRIALS_PER_EXTRA_DEVICE} trials of a cell, at most one per core: each device costs "
+        "one more compilation)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
@@ -110,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
         use_cpu_devices(args.cpu_devices)
     else:
         try:
-            use_cpu_devices()
+            use_cpu_devices(default_cpu_devices(args.trials * len(args.noise_pos)))
         except RuntimeError:
             pass
     jax.config.update("jax_enable_x64", True)

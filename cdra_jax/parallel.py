@@ -129,7 +129,9 @@ def split_over_devices(
     there; JAX dispatches the parts asynchronously, so the devices work concurrently. The
     results are fetched to the host (NumPy) and concatenated along the leading axis, in order.
     ``shared`` arguments go to every part as they are. With one device this is ``fn`` on the
-    whole batch.
+    whole batch. JAX compiles ``fn`` once per device, one after the other. (Dispatching the
+    parts from one thread each did not overlap those compilations and made the steady state
+    slower: 4427-4576 vs 5090-5207 trials/s for 4000 paper-solver trials, side by side.)
 
     This is explicit data parallelism rather than a sharded ``jit``: the trials are
     independent, so no communication is needed, and it was measured faster than the SPMD

@@ -278,3 +278,12 @@ def test_bad_sweeps(cdra):
         run_sweep(cdra, LEVELS, [3], ["paper"], trials=1)
     with pytest.raises(ValueError, match="unknown solver"):
         run_sweep(cdra, LEVELS, [5], ["newton"], trials=1)
+
+
+def test_default_cpu_devices_pay_for_their_compilation():
+    from cdra_jax.cli_sweep import TRIALS_PER_EXTRA_DEVICE, default_cpu_devices
+    from cdra_jax.parallel import schedulable_cores
+
+    assert default_cpu_devices(0) == default_cpu_devices(TRIALS_PER_EXTRA_DEVICE - 1) == 1
+    assert default_cpu_devices(2 * TRIALS_PER_EXTRA_DEVICE) == min(2, schedulable_cores())
+    assert default_cpu_devices(10**12) == schedulable_cores()
