@@ -323,11 +323,11 @@ def _inliers_only(p):
     )
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [1, 2])
 def test_reject_outliers_refits_least_squares_on_the_unflagged_poses(seed):
     """Huber with ``reject_outliers`` is the least-squares fit of the uncorrupted poses (the
-    oracle), which on seeds 1 and 2 pure Huber misses by 3.0x and 3.2x the clean fit's held-out
-    dp; seed 2 also shows the limit: even the oracle is 1.66x there (12 poses lose 2)."""
+    oracle), where pure Huber misses the clean fit's held-out dp by 3.0x (seed 1) and 3.2x
+    (seed 2); seed 2 also shows the limit: even the oracle is 1.66x there (12 poses lose 2)."""
     p = problem(seed)
     r = robust(p.arm, p.q, p.T_bad, NOISE_ARR, loss="huber", reject_outliers=True, throw=False)
     plain = robust(p.arm, p.q, p.T_bad, NOISE_ARR, loss="huber", throw=False)
@@ -348,7 +348,7 @@ def test_reject_outliers_refits_least_squares_on_the_unflagged_poses(seed):
     frames = jnp.stack([clean.frames, plain.frames, r.frames])
     dp_clean, dp_huber, dp_reject = np.asarray(held_out_dp(p.arm, frames, p.q_ver, p.T_ver))
     assert dp_reject <= dp_huber * (1 + 1e-9), (dp_clean, dp_huber, dp_reject)
-    assert dp_reject / dp_clean < {0: 1.5, 1: 1.5, 2: 1.7}[seed]
+    assert dp_reject / dp_clean < {1: 1.5, 2: 1.7}[seed]
     # the flagged poses stay in the result, with their residuals at the final model
     assert np.all(np.asarray(r.z)[p.mask] > 10) and np.all(
         np.asarray(r.z)[~p.mask] < OUTLIER_THRESHOLD
