@@ -110,18 +110,24 @@ def time_jax(
         t0 = time.perf_counter()
         _block(fresh(qj, Tj))
         first_s = time.perf_counter() - t0
+    return _steady(lambda: _block(compiled(qj, Tj)), q.shape[0], repeats, compile_s, first_s)
+
+
+def _steady(call: Callable, n: int, repeats: int, compile_s: float, first_s: float) -> dict:
+    """Median wall time of ``repeats`` calls of ``call()`` (a batch of ``n`` trials), as the
+    result dict of :func:`time_jax` (``solution``: the last call's result)."""
     times = []
     sol = None
     for _ in range(repeats):
         t0 = time.perf_counter()
-        sol = _block(compiled(qj, Tj))
+        sol = call()
         times.append(time.perf_counter() - t0)
     steady = statistics.median(times)
     return dict(
         compile_s=compile_s,
         first_call_s=first_s,
         steady_s=steady,
-        trials_per_s=q.shape[0] / steady,
+        trials_per_s=n / steady,
         all_s=times,
         solution=sol,
     )
@@ -138,20 +144,8 @@ def time_jax_split(
     t0 = time.perf_counter()
     split_over_devices(fn, (q, T), devices)
     first_s = time.perf_counter() - t0
-    times = []
-    sol = None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        sol = split_over_devices(fn, (q, T), devices)
-        times.append(time.perf_counter() - t0)
-    steady = statistics.median(times)
-    return dict(
-        compile_s=first_s,
-        first_call_s=first_s,
-        steady_s=steady,
-        trials_per_s=q.shape[0] / steady,
-        all_s=times,
-        solution=sol,
+    return _steady(
+        lambda: split_over_devices(fn, (q, T), devices), q.shape[0], repeats, first_s, first_s
     )
 
 
