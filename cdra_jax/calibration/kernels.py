@@ -327,11 +327,8 @@ def linearise(
     """
     dtype = poses.dtype
     tool, after = chain(jnp.asarray(frames), poses)
-    Y = residual(measured, tool)  # (6, m)
-    dpos = measured[:, 3] - tool[:, 3]
-    m = dpos.shape[-1]
-    delta_p = jnp.sqrt(jnp.sum(dpos * dpos) / m)
-    delta_R = jnp.sqrt(jnp.sum(Y[3:] * Y[3:]) / m)
+    Y, delta_p, delta_R = residual_and_metrics(measured, tool)  # Y: (6, m)
+    m = Y.shape[-1]
     # D_k^T = [I; Ad(P_1)^T; ...; Ad(P_K)^T] as (K+1, 6, 6, m): (frame, column, row, pose)
     eye = jnp.broadcast_to(jnp.eye(6, dtype=dtype)[:, :, None], (6, 6, m))
     blocks = jnp.stack([eye] + [adjoint_transpose(a) for a in after])
@@ -344,9 +341,19 @@ def linearise(
     )
 
 
-def deviation_metrics(measured: Array, tool: Array) -> tuple[Array, Array]:
-    """Eqs. 20-21 for pose stacks ``(3, 4, m)`` (see :func:`linearise` for Eq. 21)."""
+def residual_and_metrics(measured: Array, tool: Array) -> tuple[Array, Array, Array]:
+    """Eq. 7's residual ``(6, m)`` and Eqs. 20-21 from it, for pose stacks ``(3, 4, m)``.
+
+    Eq. 21's ``|log(R_a^-1 R_c)|`` is the norm of the residual's rotational part (see
+    :func:`linearise`), so the logarithm is taken once.
+    """
+    Y = residual(measured, tool)
     dpos = measured[:, 3] - tool[:, 3]
     m = dpos.shape[-1]
-    w = residual(measured, tool)[3:]
-    return jnp.sqrt(jnp.sum(dpos * dpos) / m), jnp.sqrt(jnp.sum(w * w) / m)
+    return Y, jnp.sqrt(jnp.sum(dpos * dpos) / m), jnp.sqrt(jnp.sum(Y[3:] * Y[3:]) / m)
+
+
+def deviation_metrics(measured: Array, tool: Array) -> tuple[Array, Array]:
+    """Eqs. 20-21 for pose stacks ``(3, 4, m)`` (see :func:`linearise` for Eq. 21)."""
+    _, delta_p, delta_R = residual_and_metrics(measured, tool)
+    return delta_p, delta_R

@@ -170,8 +170,7 @@ def _residual(
     """
     frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
     tool, _ = kernels.chain(frames, poses)
-    r = kernels.residual(measured, tool)  # (6, m)
-    dp, dR = kernels.deviation_metrics(measured, tool)
+    r, dp, dR = kernels.residual_and_metrics(measured, tool)  # r: (6, m), one logarithm
     if noise is not None:
         r = kernels.whiten(r, measured, noise)
     return r.reshape(-1), (dp, dR)
