@@ -30,7 +30,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm
 from . import kernels
-from .batching import chunked_vmap
+from .batching import batched_like, chunked_vmap
 from .linear import min_norm_lstsq, min_norm_solve_normal, normal_cutoff
 from .model import NoiseModel
 from .solution import (
@@ -179,17 +179,20 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
             )
 
         lin0 = jax.eval_shape(lambda: kernels.linearise(frames0, P, T, noise))
-        init = (
-            jnp.asarray(0),
-            frames0,
-            jnp.full((max_iterations,), nan),
-            jnp.full((max_iterations + 1,), nan),
-            jnp.full((max_iterations + 1,), nan),
-            (jnp.asarray(n), jnp.asarray(0), jnp.asarray(True)),  # step ranks, all resolved
-            jnp.asarray(False),
+        init = batched_like(
             finite_in,
-            jnp.asarray(False),  # finished: the last pass has linearised the final model
-            jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), lin0),
+            (
+                jnp.asarray(0),
+                frames0,
+                jnp.full((max_iterations,), nan),
+                jnp.full((max_iterations + 1,), nan),
+                jnp.full((max_iterations + 1,), nan),
+                (jnp.asarray(n), jnp.asarray(0), jnp.asarray(True)),  # step ranks, all resolved
+                jnp.asarray(False),
+                finite_in,
+                jnp.asarray(False),  # finished: the last pass has linearised the final model
+                jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), lin0),
+            ),
         )
         k, frames, steps, dps, dRs, steps_ok, done, ok, _, lin = jax.lax.while_loop(
             lambda c: ~c[8], body, init

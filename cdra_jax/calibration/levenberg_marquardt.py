@@ -68,7 +68,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm
 from . import kernels
-from .batching import chunked_vmap
+from .batching import batched_like, chunked_vmap
 from .linear import default_rcond
 from .model import NoiseModel
 from .solution import CalibrationSolution, _solution_at, _solve_problem
@@ -253,13 +253,18 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         dyn_state, static_state = optx_state(fn, u0, T.shape[-1])
         carry = (
             jnp.asarray(0),
-            u0,
-            basis,
-            dyn_state,
-            jnp.full((max_iterations,), nan),
-            jnp.full((max_iterations + 1,), nan),
-            jnp.full((max_iterations + 1,), nan),
-            jnp.asarray(False),
+            *batched_like(
+                finite_in,
+                (
+                    u0,
+                    basis,
+                    dyn_state,
+                    jnp.full((max_iterations,), nan),
+                    jnp.full((max_iterations + 1,), nan),
+                    jnp.full((max_iterations + 1,), nan),
+                    jnp.asarray(False),
+                ),
+            ),
             finite_in,
         )
         return carry, static_state
