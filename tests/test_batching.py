@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from _devices import run_on_two_cpu_devices
 
-from cdra_jax.calibration.batching import chunked_vmap
+from cdra_jax.calibration.batching import batched_like, chunked_vmap
 
 
 def _newton_sqrt(a, x0, tol):
@@ -45,6 +45,29 @@ def test_chunked_vmap_equals_vmap():
         a.reshape(1, 11), x0.reshape(1, 11), 1e-12
     )[1]
     np.testing.assert_array_equal(xx[0], x_ref)
+
+
+def test_batched_like_changes_no_value():
+    """``batched_like`` (the solvers' initial loop carries) is the identity, for either value of
+    the reference, batched or not, NaNs included."""
+    tree = (jnp.zeros(3), jnp.asarray(False), jnp.full(2, jnp.nan), jnp.asarray(7))
+    for ref in (True, False):
+        out = batched_like(jnp.asarray(ref), tree)
+        for a, b in zip(out, tree, strict=True):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    out = jax.vmap(lambda x: batched_like(x > 0, tree))(jnp.array([-1.0, 1.0]))
+    for a, b in zip(out, tree, strict=True):
+        np.testing.assert_array_equal(a, jnp.broadcast_to(b, (2,) + b.shape))
+
+    def newton(a, x0):  # the carry starts batched: the same loop, the same result
+        return _newton_sqrt(a, batched_like(a > 0, x0), 1e-12)
+
+    a = jnp.logspace(-3, 12, 5)
+    np.testing.assert_array_equal(
+        jax.vmap(newton, in_axes=(0, None))(a, 1.0)[1],
+        jax.vmap(_newton_sqrt, in_axes=(0, None, None))(a, 1.0, 1e-12)[1],
+    )
 
 
 @pytest.mark.slow
