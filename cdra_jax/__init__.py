@@ -10,6 +10,7 @@ import importlib.metadata
 
 from . import arm as arm
 from . import calibration as calibration
+from . import compilation as compilation
 from . import identifiability as identifiability
 from . import io as io
 from . import lie as lie
@@ -32,6 +33,8 @@ from .calibration import calibrate_lm as calibrate_lm
 from .calibration import calibrate_paper as calibrate_paper
 from .calibration import calibrate_robust as calibrate_robust
 from .calibration import deviation_metrics as deviation_metrics
+from .compilation import compiler_options as compiler_options
+from .compilation import jit as jit
 from .io import check_plausibility as check_plausibility
 from .io import default_arm as default_arm
 from .io import load_measurements as load_measurements

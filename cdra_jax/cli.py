@@ -117,13 +117,14 @@ def _frame_table(names: Sequence[str], rows, title: str) -> list[str]:
 
 @functools.cache
 def _jitted(fn: Callable) -> Callable:
-    """``equinox.filter_jit(fn)``, made once per function so repeated calls reuse the compile.
+    """:func:`cdra_jax.compilation.filter_jit` of ``fn``, made once per function so repeated
+    calls reuse the compile.
 
     One compiled program per solve starts several times faster than op-by-op dispatch.
     """
-    import equinox as eqx
+    from .compilation import filter_jit
 
-    return eqx.filter_jit(fn)
+    return filter_jit(fn)
 
 
 def _simulation(key, arm, X, d_v, d_w, m: int, noise, random_errors: bool):

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
@@ -45,6 +44,7 @@ from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
 from .calibration.validation import MIN_POSES, require_finite_states
+from .compilation import filter_jit
 
 
 @dataclass(frozen=True)
@@ -131,7 +131,7 @@ def stacked_jacobian(
     return np.asarray(_stacked_jacobian(arm, q, measured, noise))
 
 
-@eqx.filter_jit
+@filter_jit
 def _stacked_jacobian(arm, q, measured, noise):
     # Compiled once per shape: analyze() is called in loops (pose-set design, sweeps).
     tool, after = chain(arm.frames, module_poses(arm, q))

@@ -60,7 +60,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,6 +70,7 @@ from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
 from .calibration.validation import require_finite_states
+from .compilation import filter_jit, jit
 from .simulation import StateSampler, sample_poses
 
 CRITERIA: tuple[str, ...] = ("i-opt", "d-opt", "o1")
@@ -111,7 +111,7 @@ class PoseSelection:
     n_exchanges: int
 
 
-@eqx.filter_jit
+@filter_jit
 def information_blocks(arm: Arm, q: ArrayLike, noise: NoiseModel | None) -> Array:
     """Per-pose (whitened) Jacobian blocks ``A_i = G_i D_i``: ``(N, dof) -> (N, 6, n)``.
 
@@ -349,9 +349,9 @@ def _select_i(B: Array, Q: Array, m: int, eps: Array, exchange: bool, max_swaps:
     return idx_g, jnp.where(first, idx_1, idx_2), jnp.where(first, n_1, n_2)
 
 
-_select_jit = jax.jit(_select, static_argnums=(1, 3, 4, 5))
-_sample_poses_jit = eqx.filter_jit(sample_poses)  # one compile instead of many eager ones
-_select_i_jit = jax.jit(_select_i, static_argnums=(2, 4, 5, 6))
+_select_jit = jit(_select, static_argnums=(1, 3, 4, 5))
+_sample_poses_jit = filter_jit(sample_poses)  # one compile instead of many eager ones
+_select_i_jit = jit(_select_i, static_argnums=(2, 4, 5, 6))
 
 
 def _check_pool(arm: Arm, pool: ArrayLike, name: str = "pool") -> np.ndarray:
@@ -522,7 +522,7 @@ class PredictionBound:
     iterations: int
 
 
-@eqx.filter_jit
+@filter_jit
 def _approximate_i_design(F: Array, Q: Array, iterations: int):
     """Multiplicative algorithm for ``min_w tr(Q M(w)^-1)``, ``M(w) = sum_i w_i F_i``."""
     N = F.shape[0]

@@ -59,6 +59,7 @@ from .calibration import (
     result_names,
 )
 from .calibration.model import stacked_system
+from .compilation import jit
 from .identifiability import analyze, format_combination
 from .io.model import default_arm
 from .simulation import StateSampler
@@ -113,11 +114,6 @@ DEFAULT_FEATURE_SPACING_MM = 100.0
 SOLVERS: tuple[str, ...] = ("paper", "weighted")
 """The two solvers of the noise study: unweighted (Eq. 10 as printed) and noise-whitened."""
 
-# XLA options for small runs: without the backend optimisations the vmapped PRNG and solvers
-# compile several times faster, which is what dominates a run of a few hundred trials.
-_FAST_COMPILE = {"xla_backend_optimization_level": 0}
-
-
 # --------------------------------------------------------------------------------------------
 # Shared helpers
 # --------------------------------------------------------------------------------------------
@@ -153,28 +149,20 @@ def _keys(seed: int, n: int) -> jax.Array:
 
 
 class _Jit:
-    """A function jitted twice: with XLA's default optimisation, and with :data:`_FAST_COMPILE`.
-
-    ``fast_compile=True`` at the call picks the second (several times quicker to compile, up to
-    ~2x slower to run: the right trade for small trial counts); if the backend does not know
-    the option, the default compilation is used.
+    """A function jitted twice (:func:`cdra_jax.compilation.jit`): with the package's compile
+    options, and with ``fast_compile`` (:data:`cdra_jax.compilation.FAST_COMPILE_OPTIONS`:
+    without XLA's backend optimisations the vmapped PRNG and solvers compile several times
+    faster and run up to ~2x slower, the right trade for a run of a few hundred trials).
+    ``fast_compile=True`` at the call picks the second.
     """
 
     def __init__(self, fun: Callable, static_argnames: Sequence[str]):
-        self._plain = jax.jit(fun, static_argnames=tuple(static_argnames))
-        self._fast = jax.jit(
-            fun, static_argnames=tuple(static_argnames), compiler_options=_FAST_COMPILE
-        )
+        self._plain = jit(fun, static_argnames=tuple(static_argnames))
+        self._fast = jit(fun, fast_compile=True, static_argnames=tuple(static_argnames))
         functools.update_wrapper(self, fun)
 
     def __call__(self, *args, fast_compile: bool = False, **kwargs):
-        if fast_compile:
-            try:
-                return self._fast(*args, **kwargs)
-            except jax.errors.JaxRuntimeError as e:
-                if "compile option" not in str(e):
-                    raise
-        return self._plain(*args, **kwargs)
+        return (self._fast if fast_compile else self._plain)(*args, **kwargs)
 
 
 def _jit(*static_argnames: str) -> Callable[[Callable], _Jit]:
@@ -315,7 +303,7 @@ def _rounding_effect(arm: Arm, X: jax.Array, q: jax.Array, decimals: int):
     )
 
 
-_rounding_effect_jit = jax.jit(_rounding_effect, static_argnames=("decimals",))
+_rounding_effect_jit = jit(_rounding_effect, static_argnames=("decimals",))
 
 
 def rounding_bound(

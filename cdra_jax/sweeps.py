@@ -70,6 +70,7 @@ from .calibration import (
 )
 from .calibration.linear import default_rcond
 from .calibration.validation import MIN_POSES
+from .compilation import jit
 from .io.files import write_file_atomic
 from .parallel import check_devices, split_over_devices
 from .simulation import StateSampler, sample_poses, simulate_trial
@@ -452,7 +453,7 @@ def _batched_trials(
     sweep with the same settings and chunk size does not compile again; JAX compiles it once
     per device it runs on)."""
     f = _trial_function(m, solver, noisy, d_v, d_w, m_verify, sampler, max_iterations)
-    return jax.jit(jax.vmap(f, in_axes=(None, None, 0, 0, 0)))
+    return jit(jax.vmap(f, in_axes=(None, None, 0, 0, 0)))
 
 
 @dataclass(frozen=True)

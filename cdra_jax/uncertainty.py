@@ -53,6 +53,7 @@ from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
 from .calibration.validation import require_finite_states
+from .compilation import filter_jit
 from .identifiability import analyze as analyze_identifiability
 
 DEFAULT_CONFIDENCE = 0.95
@@ -60,7 +61,7 @@ IDENTIFIABLE_TOL = 1e-8
 """A direction ``c`` counts as identifiable when ``|P_null c| <= IDENTIFIABLE_TOL |c|``."""
 
 
-@eqx.filter_jit
+@filter_jit
 def whitened_jacobian(
     arm: Arm, q: ArrayLike, noise: NoiseModel | None, measured: ArrayLike | None = None
 ) -> Array:
@@ -129,7 +130,7 @@ class ParameterUncertainty(eqx.Module):
         return jnp.where(self.identifiable(c, tol), var, jnp.inf)
 
 
-@eqx.filter_jit
+@filter_jit
 def parameter_covariance(
     arm: Arm,
     q: ArrayLike,
@@ -163,7 +164,7 @@ def parameter_covariance(
     )
 
 
-@eqx.filter_jit
+@filter_jit
 def cramer_rao_bound(
     arm: Arm,
     q: ArrayLike,
@@ -217,7 +218,7 @@ class PoseCovariance(eqx.Module):
         return jnp.sqrt(jnp.mean(jnp.trace(self.rotation, axis1=-2, axis2=-1), axis=-1))
 
 
-@eqx.filter_jit
+@filter_jit
 def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseCovariance:
     """Propagate a parameter covariance ``(n, n)`` to the tool poses at ``q_eval (k, dof)``.
 
@@ -245,7 +246,7 @@ def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseC
     return PoseCovariance(twist=twist, position=position, rotation=twist[..., 3:, 3:])
 
 
-@eqx.filter_jit
+@filter_jit
 def predicted_pose_covariance(
     arm: Arm,
     q: ArrayLike,

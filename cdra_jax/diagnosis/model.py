@@ -9,7 +9,6 @@ residual is the whitened Eq. 7 twist of every pose, stacked ``(6 m,)``.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,10 +18,11 @@ from .. import lie
 from ..arm import Arm
 from ..calibration import calibrate_paper
 from ..calibration.model import residual_twist
+from ..compilation import filter_jit
 from ..physics import Aux, Candidate, Features, corrected_tool_pose
 
 
-@eqx.filter_jit
+@filter_jit
 def all_features(cands: tuple[Candidate, ...], arm: Arm, q: Array, aux: Aux) -> Features:
     """Features of every candidate in ``cands`` (static), concatenated; compiled once."""
     return Features.concatenate([c.features(arm, q, aux) for c in cands])
@@ -41,7 +41,7 @@ def whitened_residual(
     return jnp.einsum("mij,mj->mi", G, Y).reshape(-1)
 
 
-@eqx.filter_jit
+@filter_jit
 def residual_and_jacobian(
     y: Array, arm: Arm, q: Array, measured: Array, G: Array, features: Features
 ) -> tuple[Array, Array]:
@@ -51,7 +51,7 @@ def residual_and_jacobian(
     return fn(y), jax.jacfwd(fn)(y)
 
 
-@eqx.filter_jit
+@filter_jit
 def geometric_fit(arm: Arm, q: Array, measured: Array, noise):
     """Weighted Gauss-Newton of the paper (:func:`cdra_jax.calibration.calibrate_paper`)."""
     return calibrate_paper(arm, q, measured, noise, max_iterations=30, throw=False)

@@ -41,7 +41,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import jax
 import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
@@ -49,6 +48,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm
 from ..calibration.validation import MIN_POSES
+from ..compilation import jit
 from .files import write_text_atomic
 from .state_sources import STATE_SOURCES, StateSource
 
@@ -304,17 +304,17 @@ class Measurements:
 
 
 # Compiled once per row count: much faster than dispatching the small ops one by one.
-@jax.jit
+@jit
 def _poses_from_rotvec(xyz: Array, rotvec: Array) -> Array:
     return lie.make_pose(lie.so3_exp(rotvec), xyz)
 
 
-@jax.jit
+@jit
 def _poses_from_quaternion(xyz: Array, quat: Array) -> Array:
     return lie.make_pose(lie.quaternion_to_rotation(quat), xyz)
 
 
-@jax.jit
+@jit
 def _rotvec_quaternion(T: Array) -> tuple[Array, Array]:
     return lie.so3_log(lie.rotation(T)), lie.rotation_to_quaternion(lie.rotation(T))
 

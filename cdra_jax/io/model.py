@@ -34,20 +34,20 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import tomli_w
 
 from .. import lie
 from ..arm import MODULE_KINDS, Arm, Module
+from ..compilation import jit
 from .files import write_text_atomic
 
 _ORTHO_TOL = 1e-6
 _DEFAULT_MODEL = "cdra.toml"
 # One compiled call instead of dozens of small op-by-op dispatches: every CLI run loads a model.
-_from_xyz_rotvec = jax.jit(lie.from_xyz_rotvec)
-_to_xyz_rotvec = jax.jit(lie.to_xyz_rotvec)
+_from_xyz_rotvec = jit(lie.from_xyz_rotvec)
+_to_xyz_rotvec = jit(lie.to_xyz_rotvec)
 
 
 class ModelFileError(ValueError):

@@ -42,12 +42,12 @@ from __future__ import annotations
 
 import math
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from .. import lie
 from ..arm import Arm, tool_pose
+from ..compilation import filter_jit
 from .measurements import (
     POSITION_COLUMNS,
     QUATERNION_COLUMNS,
@@ -113,10 +113,10 @@ def check_plausibility(arm: Arm, meas: Measurements) -> tuple[str, ...]:
 
 
 # Compiled: one call instead of dozens of small op-by-op dispatches (as the readers do).
-_tool_pose = eqx.filter_jit(tool_pose)
-_rotation_angle = eqx.filter_jit(lie.rotation_angle)
-_so3_exp = eqx.filter_jit(lie.so3_exp)
-_quaternion_to_rotation = eqx.filter_jit(lie.quaternion_to_rotation)
+_tool_pose = filter_jit(tool_pose)
+_rotation_angle = filter_jit(lie.rotation_angle)
+_so3_exp = filter_jit(lie.so3_exp)
+_quaternion_to_rotation = filter_jit(lie.quaternion_to_rotation)
 
 
 def _where(meas: Measurements, i: int) -> str:

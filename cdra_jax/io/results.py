@@ -58,7 +58,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -70,6 +69,7 @@ from ..arm import TWIST_COMPONENTS, Arm, tool_pose
 from ..calibration.model import NoiseModel, pose_errors
 from ..calibration.robust import OUTLIER_THRESHOLD, RobustSolution, standardized_residuals
 from ..calibration.solution import CalibrationSolution, result_messages, result_names
+from ..compilation import filter_jit
 from .files import json_text, write_text_atomic
 from .measurements import rigid_transform_problem
 
@@ -114,7 +114,7 @@ def _pose_dict(T: np.ndarray, xyz: np.ndarray, rotvec: np.ndarray) -> dict[str, 
     }
 
 
-@eqx.filter_jit
+@filter_jit
 def _readouts(arm: Arm, frames: Array, q: Array, measured: Array):
     """xyz/rotvec of the nominal and calibrated frames; per-pose errors of both models."""
     calibrated = arm.with_frames(frames)
@@ -126,7 +126,7 @@ def _readouts(arm: Arm, frames: Array, q: Array, measured: Array):
     )
 
 
-_standardized = eqx.filter_jit(standardized_residuals)
+_standardized = filter_jit(standardized_residuals)
 
 
 def result_to_dict(

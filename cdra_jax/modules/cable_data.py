@@ -35,6 +35,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from ..arm import Arm, Module
+from ..compilation import jit
 from ._linalg import small_inv
 from ._results import result_names
 from .cables import (
@@ -229,7 +230,7 @@ def check_cable_lengths(
     return states, rms, problems
 
 
-@jax.jit
+@jit
 def _fk_jit(module: Module, lengths: Array, residual_tol: Array):
     sol = cable_forward_kinematics(module, lengths, residual_tol=residual_tol)
     # Standardised residuals |r_i| / sqrt(1 - h_ii), h the hat matrix of the linearised fit:

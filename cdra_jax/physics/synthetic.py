@@ -10,7 +10,6 @@ independent check needs an independent simulator.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,6 +19,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm, apply_frame_errors
 from ..calibration import NoiseModel
+from ..compilation import filter_jit
 from ..io.measurements import Measurements
 from ..modules.tension import sample_feasible_states
 from ..simulation import add_measurement_noise, random_frame_errors
@@ -40,7 +40,7 @@ def recording_aux(key: Array, arm: Arm, m: int, *, dt_s: float = 20.0, payload_k
     return aux
 
 
-@eqx.filter_jit
+@filter_jit
 def _simulate(key, arm, m, candidate, params, noise, d_v, d_w, dt_s, payload_kg, distortion):
     k_err, k_q, k_aux, k_noise = jax.random.split(key, 4)
     X = random_frame_errors(k_err, arm, d_v, d_w)

@@ -1,0 +1,148 @@
+"""XLA compile options for the package's compiled programs, and ``jit`` wrappers that apply them.
+
+The calibration solvers are long element-wise programs (the pose-last kernels of
+:mod:`cdra_jax.calibration.kernels`) inside ``while`` loops. XLA:CPU (jaxlib 0.10) emits its
+fused element-wise kernels with the MLIR "fusion emitters" by default; for these programs its
+older LLVM-IR emitters (``xla_cpu_use_fusion_emitters=False``) compile 1.3-1.6x faster *and* the
+code runs 4-12 % faster, with bitwise equal results (``benchmarks/README.md``, "Compile
+options"; measured side by side: paper solver 4.0 -> 2.9 s compile, LM 6.2 -> 4.0 s at 4096
+trials). Every place where the package compiles a program (the sweeps, the Section V/VI
+reproduction, the command line, the analyses) uses :func:`jit` or :func:`filter_jit`, which
+pass :func:`compiler_options` to :func:`jax.jit`. When you compile the solvers yourself, pass
+them too::
+
+    solve = cdra_jax.jit(jax.vmap(lambda q, T: cdra_jax.calibrate_paper(arm, q, T, throw=False)))
+    # or: jax.jit(..., compiler_options=cdra_jax.compiler_options())
+
+The options are resolved at the first compilation, not at import: an option that the installed
+XLA does not know, or that the user sets in ``XLA_FLAGS`` (which then wins), is left out, and
+``CDRA_JAX_XLA_DEFAULTS=1`` in the environment turns all of them off (XLA's own defaults, e.g.
+to compare). On GPU and TPU the CPU option is ignored by XLA.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Callable
+from typing import Any
+
+import jax
+
+PREFERRED_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
+"""XLA debug options the package compiles with (see the module docstring)."""
+
+FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_backend_optimization_level": 0}
+"""Added by ``fast_compile=True``: no LLVM optimisation passes. Several times quicker to
+compile and up to ~2x slower to run: the right trade for one-off runs of a few hundred trials."""
+
+DEFAULTS_ENV = "CDRA_JAX_XLA_DEFAULTS"
+"""Environment variable: ``1`` compiles with XLA's defaults (:func:`compiler_options` is empty)."""
+
+
+def compiler_options(fast_compile: bool = False) -> dict[str, Any]:
+    """The options for :func:`jax.jit`'s ``compiler_options`` (a new dict each call).
+
+    Args:
+        fast_compile: also add :data:`FAST_COMPILE_OPTIONS`.
+
+    Returns:
+        The options of :data:`PREFERRED_OPTIONS` (and :data:`FAST_COMPILE_OPTIONS`) that the
+        installed XLA accepts and that ``XLA_FLAGS`` does not set; empty when
+        ``CDRA_JAX_XLA_DEFAULTS=1``. ``fast_compile`` options are kept even then (they are an
+        explicit request of the caller).
+    """
+    wanted = {} if os.environ.get(DEFAULTS_ENV, "") == "1" else dict(PREFERRED_OPTIONS)
+    if fast_compile:
+        wanted.update(FAST_COMPILE_OPTIONS)
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {k: v for k, v in wanted.items() if f"--{k}" not in flags and _accepted(k, v)}
+
+
+@functools.cache
+def _accepted(name: str, value: Any) -> bool:
+    """Whether XLA accepts the compile option (one trivial compilation per option, cached)."""
+    try:
+        jax.jit(lambda x: x, compiler_options={name: value}).lower(0.0).compile()
+    except jax.errors.JaxRuntimeError as e:
+        if "compile option" in str(e):
+            return False
+        raise
+    return True
+
+
+_NESTED = "can only be passed to top-level"
+"""JAX's error for ``compiler_options`` on a ``jit`` traced inside another transformation."""
+
+
+class _LazyJit:
+    """A jitted function whose compile options are resolved at its first use (not at import,
+    so that e.g. :func:`cdra_jax.parallel.use_cpu_devices` can still configure the backend).
+
+    JAX accepts ``compiler_options`` only on a top-level ``jit``; called inside another ``jit``,
+    ``vmap`` or ``grad`` the function runs as a plain ``jit`` (the enclosing program's options
+    apply to it).
+    """
+
+    def __init__(self, make: Callable[[dict[str, Any]], Callable], fun: Callable, fast: bool):
+        self._make = make
+        self._fast = fast
+        self._jitted: Callable | None = None
+        self._plain: Callable | None = None
+        functools.update_wrapper(self, fun)
+
+    @property
+    def jitted(self) -> Any:
+        """The underlying jitted function (built at the first access)."""
+        if self._jitted is None:
+            self._jitted = self._make(compiler_options(self._fast))
+        return self._jitted
+
+    def __call__(self, *args, **kwargs):
+        try:
+            return self.jitted(*args, **kwargs)
+        except ValueError as e:
+            if _NESTED not in str(e):
+                raise
+        if self._plain is None:
+            self._plain = self._make({})
+        return self._plain(*args, **kwargs)
+
+    def lower(self, *args, **kwargs):
+        """As ``jax.jit(...).lower``."""
+        return self.jitted.lower(*args, **kwargs)
+
+    def trace(self, *args, **kwargs):
+        """As ``jax.jit(...).trace``."""
+        return self.jitted.trace(*args, **kwargs)
+
+
+def jit(fun: Callable, *, fast_compile: bool = False, **jit_kwargs) -> Any:
+    """:func:`jax.jit` with :func:`compiler_options` (merged under any ``compiler_options`` given).
+
+    Args:
+        fun: the function.
+        fast_compile: add :data:`FAST_COMPILE_OPTIONS`.
+        **jit_kwargs: passed to :func:`jax.jit` (``static_argnames``, ...).
+
+    Returns:
+        A callable with ``lower`` and ``trace`` as a :func:`jax.jit` function has.
+    """
+    own = jit_kwargs.pop("compiler_options", None) or {}
+
+    def make(options):
+        return jax.jit(fun, compiler_options={**options, **own}, **jit_kwargs)
+
+    return _LazyJit(make, fun, fast_compile)
+
+
+def filter_jit(fun: Callable, *, fast_compile: bool = False, **jit_kwargs) -> Any:
+    """:func:`equinox.filter_jit` with :func:`compiler_options` (see :func:`jit`)."""
+    import equinox as eqx
+
+    own = jit_kwargs.pop("compiler_options", None) or {}
+
+    def make(options):
+        return eqx.filter_jit(fun, compiler_options={**options, **own}, **jit_kwargs)
+
+    return _LazyJit(make, fun, fast_compile)

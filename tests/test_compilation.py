@@ -1,0 +1,84 @@
+"""The package's compile options (cdra_jax.compilation) and its jit wrappers."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import cdra_jax
+from cdra_jax import compilation, simulation
+
+
+def test_preferred_options_are_accepted_here(monkeypatch):
+    # jaxlib of this project's pin knows the options; the probe compiles a trivial program.
+    # (The suite's conftest sets an XLA_FLAGS option, which compiler_options would leave out.)
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    opts = compilation.compiler_options()
+    assert opts == compilation.PREFERRED_OPTIONS
+    fast = compilation.compiler_options(fast_compile=True)
+    assert fast == {**compilation.PREFERRED_OPTIONS, **compilation.FAST_COMPILE_OPTIONS}
+    assert compilation.compiler_options() is not compilation.compiler_options()  # a copy
+
+
+def test_unknown_option_is_left_out(monkeypatch):
+    assert not compilation._accepted("xla_no_such_option_for_cdra_jax", True)
+    monkeypatch.setattr(compilation, "PREFERRED_OPTIONS", {"xla_no_such_option_for_cdra_jax": True})
+    assert compilation.compiler_options() == {}
+
+
+def test_environment_switches(monkeypatch):
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.setenv(compilation.DEFAULTS_ENV, "1")
+    assert compilation.compiler_options() == {}
+    assert compilation.compiler_options(fast_compile=True) == compilation.FAST_COMPILE_OPTIONS
+    monkeypatch.delenv(compilation.DEFAULTS_ENV)
+    # An option the user sets in XLA_FLAGS is theirs: not overridden per compilation.
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert "xla_cpu_use_fusion_emitters" not in compilation.compiler_options()
+
+
+def test_jit_wrappers_work_top_level_and_nested():
+    f = compilation.jit(lambda x: jnp.sin(x) * x)
+    g = compilation.filter_jit(lambda x, n: x**n)  # n: a static Python int for filter_jit
+    x = jnp.linspace(0.1, 1.0, 4)
+    np.testing.assert_allclose(f(x), np.sin(x) * x, rtol=1e-15)
+    np.testing.assert_allclose(g(x, 3), x**3, rtol=1e-15)
+    # Nested: inside jit, vmap and grad JAX refuses compiler_options; the wrappers fall back.
+    np.testing.assert_allclose(jax.jit(lambda y: f(y) + g(y, 2))(x), np.sin(x) * x + x**2)
+    np.testing.assert_allclose(jax.vmap(f)(x), np.sin(x) * x, rtol=1e-15)
+    np.testing.assert_allclose(jax.grad(lambda y: g(y, 3))(2.0), 12.0)
+    assert f.lower(x).compile()(x).shape == (4,)
+    assert f.__name__ == "<lambda>"
+
+    def raises(y):
+        raise ValueError("the function's own error")
+
+    with pytest.raises(ValueError, match="own error"):
+        compilation.jit(raises)(x)
+
+
+def test_options_change_no_result_of_the_solvers():
+    """The paper and LM solvers compiled with the package's options and with XLA's defaults
+    agree to rounding (bitwise at XLA's default optimisation level on 10^4 trials,
+    benchmarks/README.md; this suite compiles without LLVM's optimisations, where the two
+    emitters round differently in the last digits)."""
+    arm = cdra_jax.default_arm()
+    keys = jax.random.split(jax.random.key(3), 6)
+    q, T, *_ = jax.vmap(lambda k: simulation.simulate_trial(k, arm, 8))(keys)
+
+    def solve(qq, TT):
+        return (
+            cdra_jax.calibrate_paper(arm, qq, TT, throw=False),
+            cdra_jax.calibrate_lm(arm, qq, TT, throw=False),
+        )
+
+    ours = cdra_jax.jit(jax.vmap(solve))(q, T)
+    plain = jax.jit(jax.vmap(solve))(q, T)
+    for a, b in zip(ours, plain, strict=True):
+        assert bool(jnp.all(a.converged)) and bool(jnp.all(b.converged))
+        np.testing.assert_array_equal(a.iterations, b.iterations)
+        np.testing.assert_array_equal(a.rank, b.rank)
+        np.testing.assert_allclose(a.frames, b.frames, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.errors, b.errors, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.singular_values, b.singular_values, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(a.delta_p, b.delta_p, rtol=0, atol=1e-9)
