@@ -50,6 +50,7 @@ from cdra_jax import (  # noqa: E402
     lie,
     tool_pose,
 )
+from cdra_jax.compilation import jit  # noqa: E402
 from cdra_jax.identifiability import format_combination  # noqa: E402
 from cdra_jax.simulation import measure, random_frame_errors, sample_states  # noqa: E402
 from cdra_jax.uncertainty import parameter_covariance  # noqa: E402
@@ -110,7 +111,7 @@ def main(argv=None) -> int:
             e = lie.se3_log(sol.frames @ lie.inverse(actual.frames)).reshape(-1)
             return e, sol.result._value
 
-        f = jax.jit(jax.vmap(trial))
+        f = jit(jax.vmap(trial))
         keys = jax.random.split(jax.random.fold_in(k_n, 1), args.trials)
         t0 = time.perf_counter()
         es, codes = [], []

@@ -5,7 +5,9 @@ uniform in +-1 mm / +-0.05 rad per component (``d_v``, ``d_w`` of Section V), no
 measurements unless ``--noise`` is given. All problems are generated once with
 :func:`cdra_jax.simulation.simulate_trial` under ``vmap`` and every solver gets the same ones:
 
-(a) ``paper``: ``jax.jit(jax.vmap(calibrate_paper(..., throw=False)))`` over the batch;
+(a) ``paper``: ``cdra_jax.jit(jax.vmap(calibrate_paper(..., throw=False)))`` over the batch
+    (``jax.jit`` with the package's compile options, :mod:`cdra_jax.compilation`;
+    ``--xla-defaults`` adds rows compiled with plain ``jax.jit``);
 (b) ``lm``: the same with :func:`cdra_jax.calibrate_lm` (optimistix Levenberg-Marquardt);
 (c) ``numpy``: a plain NumPy loop over trials (``benchmarks/baselines.py``: Rodrigues exp,
     Eq. 27 log, Eq. 25 adjoint, per-pose stacking, ``np.linalg.lstsq``), the reference of
@@ -52,6 +54,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import baselines  # noqa: E402
 
 from cdra_jax import NoiseModel, calibrate_lm, calibrate_paper, default_arm  # noqa: E402
+from cdra_jax.compilation import jit as package_jit  # noqa: E402
 from cdra_jax.parallel import split_over_devices, use_cpu_devices  # noqa: E402
 from cdra_jax.simulation import simulate_trial  # noqa: E402
 
@@ -91,22 +94,29 @@ def _block(x):
 
 
 def time_jax(
-    solve: Callable, q: np.ndarray, T: np.ndarray, repeats: int, first_call: bool = True
+    solve: Callable,
+    q: np.ndarray,
+    T: np.ndarray,
+    repeats: int,
+    first_call: bool = True,
+    jit: Callable = package_jit,
 ) -> dict:
     """Compile time, first-call time and steady-state median of a jitted batched solver.
 
     ``first_call=False`` skips the separate first call (trace + compile + run), whose time is
-    then reported as NaN: the scaling sweep does so for its large batches.
+    then reported as NaN: the scaling sweep does so for its large batches. ``jit``: the
+    package's (:func:`cdra_jax.compilation.jit`, its compile options) or ``jax.jit`` (XLA's
+    defaults, rows ``*_xla_defaults``).
     """
     qj, Tj = jnp.asarray(q), jnp.asarray(T)
     _block((qj, Tj))
-    fn = jax.jit(jax.vmap(solve))
+    fn = jit(jax.vmap(solve))
     t0 = time.perf_counter()
     compiled = fn.lower(qj, Tj).compile()
     compile_s = time.perf_counter() - t0
     first_s = float("nan")
     if first_call:
-        fresh = jax.jit(jax.vmap(solve))  # a separate jit: its first call traces and compiles
+        fresh = jit(jax.vmap(solve))  # a separate jit: its first call traces and compiles
         t0 = time.perf_counter()
         _block(fresh(qj, Tj))
         first_s = time.perf_counter() - t0
@@ -140,7 +150,7 @@ def time_jax_split(
     (:func:`cdra_jax.parallel.split_over_devices`: the parts run at the same time, each device
     with its own compiled program). ``compile_s`` is the first call (it compiles for every
     device); the steady state includes moving each part to its device and the results back."""
-    fn = jax.jit(jax.vmap(solve))
+    fn = package_jit(jax.vmap(solve))
     t0 = time.perf_counter()
     split_over_devices(fn, (q, T), devices)
     first_s = time.perf_counter() - t0
@@ -158,7 +168,7 @@ def time_jax_calls(solve: Callable, q: np.ndarray, T: np.ndarray, per_call: int)
     moved to the device before its clock starts, and its outputs are discarded after it.
     """
     n = q.shape[0]
-    fn = jax.jit(jax.vmap(solve))
+    fn = package_jit(jax.vmap(solve))
     t0 = time.perf_counter()
     compiled = fn.lower(jnp.asarray(q[:per_call]), jnp.asarray(T[:per_call])).compile()
     compile_s = time.perf_counter() - t0
@@ -223,12 +233,16 @@ def run(args) -> dict:
     runs = [(name, fn, 1) for name, fn in (("paper", calibrate_paper), ("lm", calibrate_lm))]
     if len(devices) > 1:
         runs += [(f"{name}_x{len(devices)}", fn, len(devices)) for name, fn, _ in list(runs)]
+    if args.xla_defaults:
+        runs += [(f"{name}_xla_defaults", fn, 0) for name, fn, n in list(runs) if n == 1]
     for name, fn, n_dev in runs:
         if name.split("_x")[0] not in args.solvers:
             continue
         solve = lambda qq, TT, fn=fn: fn(arm, qq, TT, throw=False)  # noqa: E731
         if n_dev == 1:
             r = time_jax(solve, q, T, args.repeats)
+        elif n_dev == 0:  # one device, plain jax.jit: XLA's default compile options
+            r = time_jax(solve, q, T, args.repeats, jit=jax.jit)
         else:
             r = time_jax_split(solve, q, T, args.repeats, devices)
         sol = r.pop("solution")
@@ -278,8 +292,9 @@ def run(args) -> dict:
 
 def print_table(res: dict, n_base: int, n_trials: int) -> None:
     ref = res["numpy"]["trials_per_s"] if "numpy" in res else float("nan")
+    w = max([10] + [len(k) for k in res])
     head = (
-        f"{'solver':10s} {'trials':>7s} {'trials/s':>10s} {'vs numpy':>9s} {'compile s':>10s} "
+        f"{'solver':{w}s} {'trials':>7s} {'trials/s':>10s} {'vs numpy':>9s} {'compile s':>10s} "
         f"{'first s':>8s} {'conv':>5s} {'iters':>6s} {'d(base,tool) vs paper':>22s} "
         f"{'vs preset':>10s}"
     )
@@ -291,7 +306,7 @@ def print_table(res: dict, n_base: int, n_trials: int) -> None:
         comp = f"{r['compile_s']:10.2f}" if "compile_s" in r else f"{'-':>10s}"
         first = f"{r['first_call_s']:8.2f}" if "first_call_s" in r else f"{'-':>8s}"
         print(
-            f"{name:10s} {n:7d} {r['trials_per_s']:10.1f} {r['trials_per_s'] / ref:9.1f} "
+            f"{name:{w}s} {n:7d} {r['trials_per_s']:10.1f} {r['trials_per_s'] / ref:9.1f} "
             f"{comp} {first} {r['converged']:5.2f} {r['iterations_mean']:6.2f} "
             f"{r['maxdiff_vs_paper']:22.2e} {r['maxdiff_vs_preset']:10.2e}"
         )
@@ -423,6 +438,13 @@ def main(argv: list[str] | None = None) -> dict:
         default=1,
         help="CPU devices (cdra_jax.parallel.use_cpu_devices): with N > 1 the JAX solvers are "
         "also timed with the batch split over N devices (rows paper_xN, lm_xN)",
+    )
+    p.add_argument(
+        "--xla-defaults",
+        action="store_true",
+        help="also time the JAX solvers compiled with plain jax.jit, i.e. XLA's default options "
+        "(rows paper_xla_defaults, lm_xla_defaults), side by side with the package's "
+        "cdra_jax.compilation.jit",
     )
     p.add_argument("--scaling", action="store_true", help="trials/s against N and m instead")
     p.add_argument(

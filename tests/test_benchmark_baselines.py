@@ -89,14 +89,23 @@ def test_baseline_calibrations_agree_with_the_paper_solver(cdra):
 def test_throughput_script_runs_and_reports_json(capsys):
     throughput = _load("throughput")
     args = ["--trials", "6", "--baseline-trials", "2", "--repeats", "1", "--json"]
-    throughput.main(args + ["--solvers", "paper", "numpy", "scipy"])  # LM: its own tests
+    # LM: its own tests. --xla-defaults: the paper solver also compiled with plain jax.jit.
+    throughput.main(args + ["--solvers", "paper", "numpy", "scipy", "--xla-defaults"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
     report = json.loads(last)
-    for key in ("ratio_paper_vs_numpy", "ratio_scipy_vs_numpy", "compile_s_paper"):
+    for key in (
+        "ratio_paper_vs_numpy",
+        "ratio_scipy_vs_numpy",
+        "compile_s_paper",
+        "ratio_paper_xla_defaults_vs_numpy",
+        "compile_s_paper_xla_defaults",
+    ):
         assert np.isfinite(report[key]) and report[key] > 0, key
-    for name in ("paper", "numpy", "scipy"):
+    for name in ("paper", "paper_xla_defaults", "numpy", "scipy"):
         assert report[f"maxdiff_vs_preset_{name}"] < 1e-8, name
         assert report[f"converged_{name}"] == 1.0, name
+    assert report["maxdiff_vs_paper_paper_xla_defaults"] < 1e-9
+    assert "trials_per_s_lm" not in report
 
 
 @pytest.mark.slow
