@@ -241,11 +241,11 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         # As optimistix' own loop does: carry only the array part of the solver state.
         return eqx.partition(state0, eqx.is_array)
 
-    def init(frames0, poses, measured, *noise_std):
+    def init(lin0, frames0, poses, measured, *noise_std):
         dtype = measured.dtype
         P, T, noise = setup(frames0, poses, measured, *noise_std)
         # X = basis @ u: whitened coordinates of the identifiable subspace (module docstring).
-        basis = _identifiable_basis(kernels.linearise(frames0, P, T, noise), rcond)
+        basis = _identifiable_basis(lin0, rcond)
         fn = _residual_fn(frames0, P, T, noise, basis)
         u0 = jnp.zeros(basis.shape[-1], dtype)
         nan = jnp.asarray(jnp.nan, dtype)
@@ -298,11 +298,47 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         k, u, basis, _, steps, dps, dRs, done, ok = carry
         return k, basis @ u, steps, dps, dRs, done, ok
 
-    def finish(res, frames0, poses, measured, *noise_std):
-        k, X, steps, dps, dRs, done, ok = res
-        P, T, noise = setup(frames0, poses, measured, *noise_std)
-        frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
-        lin = kernels.linearise(frames, P, T, noise)
+    def one(*args):
+        """Two passes of one loop, each linearising its model (Eq. 9) with the same code: pass 0
+        at the nominal frames, for the identifiable basis, then the LM iteration; pass 1 at the
+        solution, for the rank and the final metrics. (Linearising before and after the
+        iteration as two calls compiled the model twice: LM's compile took ~0.3 s longer.)"""
+        frames0, poses, measured = args[:3]
+        P, T, noise = setup(*args)
+        dtype = measured.dtype
+
+        def iterate(lin0):
+            # The static part of optimistix' state is the same at every step: taken once from
+            # init (tracing solver.init again in the loop body doubled the tracing time).
+            carry0, static_state = init(lin0, *args)
+            carry = jax.lax.while_loop(running, lambda c: step(c, static_state, *args), carry0)
+            k, X, steps, dps, dRs, done, ok = result(carry)
+            frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
+            return frames, (k, steps, dps, dRs, done, ok)
+
+        def apply(carry, p):
+            frames, res = carry
+            lin = kernels.linearise(frames, P, T, noise)
+            # p is the scan's counter, unbatched under vmap: a real branch.
+            carry = jax.lax.cond(p == 0, lambda: iterate(lin), lambda: (frames, res))
+            return carry, lin
+
+        nan = jnp.asarray(jnp.nan, dtype)
+        history = jnp.full((max_iterations + 1,), nan)
+        res0 = (
+            jnp.asarray(0),
+            history[1:],
+            history,
+            history,
+            jnp.asarray(False),
+            jnp.asarray(False),
+        )
+        finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
+        # Batched from the start, so that JAX batches the scan's body once (batching.py).
+        carry0 = batched_like(finite_in, (frames0.astype(dtype), res0))
+        (frames, res), lins = jax.lax.scan(apply, carry0, jnp.arange(2))
+        lin = jax.tree.map(lambda a: a[1], lins)
+        k, steps, dps, dRs, done, ok = res
         return _solution_at(
             frames,
             frames0,
@@ -316,13 +352,6 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
             delta_R=dRs.at[k].set(lin.delta_R),
             solver="lm",
         )
-
-    def one(*args):
-        # The static part of optimistix' state is the same at every step: taken once from
-        # init (tracing solver.init again in the loop body doubled the tracing time).
-        carry0, static_state = init(*args)
-        carry = jax.lax.while_loop(running, lambda c: step(c, static_state, *args), carry0)
-        return finish(result(carry), *args)
 
     return chunked_vmap(one, CHUNK_SIZE)
 
