@@ -83,6 +83,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, module_poses
+from .batching import batched_like
 from .gauss_newton import calibrate_paper
 from .levenberg_marquardt import calibrate_lm
 from .model import NoiseModel, deviation_metrics, residual_twist, whitening
@@ -468,6 +469,9 @@ def calibrate_robust(
             jnp.asarray(False),
             jnp.asarray(True),
         )
+
+    # Batched from the start under vmap, so that JAX batches the loop body once (batching.py).
+    carry0 = batched_like(jnp.all(jnp.isfinite(measured)), carry0)
 
     def cond(c):
         k, *_, done, ok = c
