@@ -45,7 +45,9 @@ Performance (see ``benchmarks/README.md``):
   Jacobian, which with autodiff costs one forward-mode pass through the chain and the
   logarithm per column and here two small matrix products;
 * the residual and its Jacobian are traced once per solver trace (``jit`` with
-  ``inline=True``; optimistix uses them in ``init`` and ``step``);
+  ``inline=True``; optimistix uses them in ``init`` and ``step``), and the nominal and the final
+  model are linearised through one call site (two passes of a ``scan``), so that XLA compiles
+  the model once there;
 * under ``vmap`` the trials run in chunks (:func:`.batching.chunked_vmap`). (A work queue
   that refills the slot of a finished trial was tried and dropped: with the rescaled subspace
   and the stop tests above the iteration counts are uniform, 8 to 14 for the CDRA with noise,
