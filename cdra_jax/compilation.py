@@ -3,13 +3,14 @@
 The calibration solvers are long element-wise programs (the pose-last kernels of
 :mod:`cdra_jax.calibration.kernels`) inside ``while`` loops. XLA:CPU (jaxlib 0.10) emits its
 fused element-wise kernels with the MLIR "fusion emitters" by default; for these programs its
-older LLVM-IR emitters (``xla_cpu_use_fusion_emitters=False``) compile 1.3-1.6x faster *and* the
-code runs 4-12 % faster, with bitwise equal results (``benchmarks/README.md``, "Compile
-options"; measured side by side: paper solver 4.0 -> 2.9 s compile, LM 6.2 -> 4.0 s at 4096
-trials). Every place where the package compiles a program (the sweeps, the Section V/VI
-reproduction, the command line, the analyses) uses :func:`jit` or :func:`filter_jit`, which
-pass :func:`compiler_options` to :func:`jax.jit`. When you compile the solvers yourself, pass
-them too::
+older LLVM-IR emitters (``xla_cpu_use_fusion_emitters=False``) compile 1.2-1.5x faster and the
+code runs a few per cent faster, with bitwise equal results at XLA's default optimisation level
+(``benchmarks/README.md``, session 7; 10^4 trials, medians of 5 fresh processes: LM 5.24 ->
+4.43 s, paper solver 4.13 -> 2.72 s to trace and compile; interleaved calls: paper 1.09x, LM
+1.04x the throughput). Every place where the package compiles a program (the sweeps, the
+Section V/VI reproduction, the command line, the analyses) uses :func:`jit` or
+:func:`filter_jit`, which pass :func:`compiler_options` to :func:`jax.jit`. When you compile
+the solvers yourself, pass them too::
 
     solve = cdra_jax.jit(jax.vmap(lambda q, T: cdra_jax.calibrate_paper(arm, q, T, throw=False)))
     # or: jax.jit(..., compiler_options=cdra_jax.compiler_options())
@@ -17,7 +18,9 @@ them too::
 The options are resolved at the first compilation, not at import: an option that the installed
 XLA does not know, or that the user sets in ``XLA_FLAGS`` (which then wins), is left out, and
 ``CDRA_JAX_XLA_DEFAULTS=1`` in the environment turns all of them off (XLA's own defaults, e.g.
-to compare). On GPU and TPU the CPU option is ignored by XLA.
+to compare). The probe compiles on the default backend, so on a GPU the option is kept only
+if that backend accepts it (it is a CPU code-generation option; not measured there: this
+project's machine has no GPU).
 """
 
 from __future__ import annotations
