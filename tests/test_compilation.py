@@ -57,6 +57,16 @@ def test_jit_wrappers_work_top_level_and_nested():
         compilation.jit(raises)(x)
 
 
+def test_probe_runs_when_first_used_inside_another_jit(monkeypatch):
+    # The options' probe compiles its own small program while the outer jit traces.
+    monkeypatch.delenv("XLA_FLAGS", raising=False)  # the suite's flags would skip the probe
+    compilation._accepted.cache_clear()
+    h = compilation.jit(lambda y: 3 * y)
+    x = jnp.arange(3.0)
+    np.testing.assert_allclose(jax.jit(lambda y: h(y) + 1)(x), 3 * x + 1, rtol=1e-15)
+    assert compilation._accepted.cache_info().misses == len(compilation.PREFERRED_OPTIONS)
+
+
 def test_options_change_no_result_of_the_solvers():
     """The paper and LM solvers compiled with the package's options and with XLA's default
     (MLIR) emitters agree to rounding (bitwise at XLA's default optimisation level on 10^4
