@@ -101,15 +101,24 @@ class _LazyJit:
             self._jitted = self._make(compiler_options(self._fast))
         return self._jitted
 
+    @property
+    def plain(self) -> Any:
+        """The same function jitted without compile options (for nested calls)."""
+        if self._plain is None:
+            self._plain = self._make({})
+        return self._plain
+
     def __call__(self, *args, **kwargs):
-        try:
+        # A traced argument means a nested call: go to the plain jit directly rather than
+        # tracing the function once for JAX to refuse the options and once more without them.
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs))):
+            return self.plain(*args, **kwargs)
+        try:  # nested without a traced argument (e.g. constants inside an outer jit)
             return self.jitted(*args, **kwargs)
         except ValueError as e:
             if _NESTED not in str(e):
                 raise
-        if self._plain is None:
-            self._plain = self._make({})
-        return self._plain(*args, **kwargs)
+        return self.plain(*args, **kwargs)
 
     def lower(self, *args, **kwargs):
         """As ``jax.jit(...).lower``."""

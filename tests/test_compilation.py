@@ -57,13 +57,27 @@ def test_jit_wrappers_work_top_level_and_nested():
         compilation.jit(raises)(x)
 
 
+def test_nested_call_traces_the_function_once():
+    traces = []
+
+    def fn(y):
+        traces.append(1)
+        return 2 * y
+
+    f = compilation.jit(fn)
+    np.testing.assert_allclose(jax.jit(lambda y: f(y) - 1)(jnp.arange(3.0)), [-1.0, 1.0, 3.0])
+    assert len(traces) == 1  # straight to the plain jit: no refused attempt with the options
+
+
 def test_probe_runs_when_first_used_inside_another_jit(monkeypatch):
-    # The options' probe compiles its own small program while the outer jit traces.
+    # The options' probe compiles its own small program while the outer jit traces. (A call
+    # with a traced argument goes to the plain jit without probing; one with constants only
+    # tries the options first.)
     monkeypatch.delenv("XLA_FLAGS", raising=False)  # the suite's flags would skip the probe
     compilation._accepted.cache_clear()
     h = compilation.jit(lambda y: 3 * y)
-    x = jnp.arange(3.0)
-    np.testing.assert_allclose(jax.jit(lambda y: h(y) + 1)(x), 3 * x + 1, rtol=1e-15)
+    x = np.arange(3.0)
+    np.testing.assert_allclose(jax.jit(lambda y: h(x) + y)(1.0), 3 * x + 1, rtol=1e-15)
     assert compilation._accepted.cache_info().misses == len(compilation.PREFERRED_OPTIONS)
 
 
