@@ -243,7 +243,7 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         # As optimistix' own loop does: carry only the array part of the solver state.
         return eqx.partition(state0, eqx.is_array)
 
-    def init(lin0, frames0, poses, measured, *noise_std):
+    def init(lin0, finite_in, frames0, poses, measured, *noise_std):
         dtype = measured.dtype
         P, T, noise = setup(frames0, poses, measured, *noise_std)
         # X = basis @ u: whitened coordinates of the identifiable subspace (module docstring).
@@ -251,7 +251,6 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         fn = _residual_fn(frames0, P, T, noise, basis)
         u0 = jnp.zeros(basis.shape[-1], dtype)
         nan = jnp.asarray(jnp.nan, dtype)
-        finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
         dyn_state, static_state = optx_state(fn, u0, T.shape[-1])
         carry = (
             jnp.asarray(0),
@@ -308,11 +307,12 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         frames0, poses, measured = args[:3]
         P, T, noise = setup(*args)
         dtype = measured.dtype
+        finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
 
         def iterate(lin0):
             # The static part of optimistix' state is the same at every step: taken once from
             # init (tracing solver.init again in the loop body doubled the tracing time).
-            carry0, static_state = init(lin0, *args)
+            carry0, static_state = init(lin0, finite_in, *args)
             carry = jax.lax.while_loop(running, lambda c: step(c, static_state, *args), carry0)
             k, X, steps, dps, dRs, done, ok = result(carry)
             frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
@@ -335,7 +335,6 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
             jnp.asarray(False),
             jnp.asarray(False),
         )
-        finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
         # Batched from the start, so that JAX batches the scan's body once (batching.py).
         carry0 = batched_like(finite_in, (frames0.astype(dtype), res0))
         (frames, res), lins = jax.lax.scan(apply, carry0, jnp.arange(2))
