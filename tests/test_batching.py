@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from _devices import run_on_two_cpu_devices
 
-from cdra_jax.calibration.batching import batched_like, chunked_vmap
+from cdra_jax.calibration.batching import batched_like, chunked_vmap, two_pass
 
 
 def _newton_sqrt(a, x0, tol):
@@ -45,6 +45,54 @@ def test_chunked_vmap_equals_vmap():
         a.reshape(1, 11), x0.reshape(1, 11), 1e-12
     )[1]
     np.testing.assert_array_equal(xx[0], x_ref)
+
+
+def _flag_multiples_of_three(calls):
+    """A chunk function for ``two_pass``: the first pass returns ``x`` and flags multiples of 3,
+    the second returns ``10 x``; each call's pass and flags are appended to ``calls``."""
+
+    def batched(second, x):
+        out = jnp.where(second, 10 * x, x)
+        redo = (x % 3 == 0) & ~second
+        jax.debug.callback(lambda s, r: calls.append((bool(s), int(r.sum()))), second, redo)
+        return out, redo
+
+    return batched
+
+
+@pytest.mark.parametrize("size", [1, 3, 4, 11, 20])
+def test_two_pass_redoes_the_flagged_trials_in_chunks_of_their_own(size):
+    """The flagged trials' outputs are the second pass's, the others the first pass's; the
+    second pass runs ceil(flagged / chunk) chunks, not one per chunk that holds a flagged trial;
+    padding (copies of the first trial, a multiple of 3) is never redone."""
+    x = jnp.arange(size, dtype=jnp.float64) * 1.0  # x[0] = 0 is flagged
+    chunk = 4
+    calls: list[tuple[bool, int]] = []
+    out = jax.jit(lambda x: two_pass(_flag_multiples_of_three(calls), chunk, x))(x)
+    flagged = np.asarray(x) % 3 == 0
+    np.testing.assert_array_equal(out, np.where(flagged, 10 * np.asarray(x), np.asarray(x)))
+    n_chunks = -(-size // min(chunk, size))
+    first = [c for c in calls if not c[0]]
+    second = [c for c in calls if c[0]]
+    assert len(first) == n_chunks
+    assert len(second) == -(-int(flagged.sum()) // min(chunk, size))
+
+
+def test_chunked_vmap_second_pass_under_vmap():
+    """``chunked_vmap(..., second_pass=True)``: vmapped (several chunks, padded), nested, and
+    unbatched calls give the per-trial result."""
+    calls: list[tuple[bool, int]] = []
+    batched = _flag_multiples_of_three(calls)
+
+    def one(x):
+        return two_pass(batched, 4, x[None])[0]
+
+    f = chunked_vmap(one, 4, batched, second_pass=True)
+    x = jnp.arange(11, dtype=jnp.float64)
+    expected = np.where(np.asarray(x) % 3 == 0, 10 * np.asarray(x), np.asarray(x))
+    np.testing.assert_array_equal(jax.jit(jax.vmap(f))(x), expected)
+    np.testing.assert_array_equal(jax.vmap(jax.vmap(f))(x.reshape(1, 11))[0], expected)
+    assert f(x[3]) == 30.0 and f(x[4]) == 4.0
 
 
 def test_batched_like_changes_no_value():

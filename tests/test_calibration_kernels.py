@@ -24,6 +24,7 @@ from cdra_jax.calibration import (
     calibrate_paper,
     default_rcond,
     deviation_metrics,
+    gauss_newton,
     kernels,
     residual_twist,
     stacked_system,
@@ -198,17 +199,21 @@ def _batch(arm, q, T, exact):
 
 
 @pytest.mark.slow
-def test_fast_paper_solver_is_the_svd_solver(cdra):
+@pytest.mark.parametrize("chunk_size", [128, 5])
+def test_fast_paper_solver_is_the_svd_solver(cdra, chunk_size, monkeypatch):
     """6 poses: a third of the sets have an identifiable direction that the normal equations do
-    not resolve (pivot below RESOLVED_PIVOT, or dropped): those are redone with SVD steps."""
+    not resolve (pivot below RESOLVED_PIVOT, or dropped): those are redone with SVD steps, in one
+    chunk, or (chunks of 5) gathered from several chunks into chunks of their own."""
+    monkeypatch.setattr(gauss_newton, "CHUNK_SIZE", chunk_size)
     keys = jax.random.split(jax.random.PRNGKey(11), 24)
     q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 6))(keys)
     # Both paths are exercised: some sets are resolved at the nominal model, some are not.
     smallest = _smallest_pivot(cdra, q, T)
     resolved = np.asarray(smallest) >= RESOLVED_PIVOT
     assert 0 < resolved.sum() < resolved.size
-    fast = _batch(cdra, q, T, False)
-    exact = _batch(cdra, q, T, True)
+    # Fresh jits: the chunk size is read when the solver is traced.
+    fast = eqx.filter_jit(lambda *a: _batch.__wrapped__(*a))(cdra, q, T, False)
+    exact = eqx.filter_jit(lambda *a: _batch.__wrapped__(*a))(cdra, q, T, True)
     np.testing.assert_array_equal(fast.iterations, exact.iterations)
     np.testing.assert_array_equal(fast.rank, exact.rank)
     np.testing.assert_array_equal(fast.result._value, exact.result._value)

@@ -9,6 +9,12 @@ chunk stays in cache and each chunk stops when its own slowest trial has converg
 is not a multiple of the chunk size is padded with copies of its first trial (and the padding is
 dropped from the result), so that the chunk body is compiled once.
 
+A solver that checks its own result can ask for a second pass (``second_pass=True``,
+:func:`two_pass`): the trials it flags in the first pass are gathered from all chunks into
+chunks of their own and evaluated again another way (the paper solver: fast normal-equation
+steps first, SVD steps for the trials that the normal equations cannot resolve), so that the
+second pass costs in proportion to the flagged trials rather than to the chunks that hold one.
+
 Unbatched calls are untouched, and the results equal those of plain ``vmap`` (the same
 per-trial arithmetic). The wrapped function is not differentiable (``jax.custom_batching``
 functions are not); the solvers it is used for are iterative and are not differentiated.
@@ -23,15 +29,25 @@ import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
 
-def chunked_vmap(fn: Callable, chunk_size: int, batched: Callable | None = None) -> Callable:
+def chunked_vmap(
+    fn: Callable,
+    chunk_size: int,
+    batched: Callable | None = None,
+    *,
+    second_pass: bool = False,
+) -> Callable:
     """``fn`` (positional array arguments) whose ``vmap`` is ``lax.map`` over vmapped chunks.
 
     Args:
         fn: a per-trial function of positional array (pytree) arguments.
         chunk_size: trials per chunk (static); a batch no larger runs as a single chunk.
         batched: the function applied to one chunk (all arguments with a leading chunk axis);
-            ``jax.vmap(fn)`` by default. It lets a solver take decisions per chunk, e.g. redo a
-            chunk a slower way only when one of its trials needs it.
+            ``jax.vmap(fn)`` by default. It lets a solver take decisions per chunk.
+        second_pass: ``batched`` is then ``batched(second, *chunk) -> (out, redo)``, with
+            ``second`` an unbatched boolean scalar and ``redo`` a ``(chunk,)`` boolean: the
+            batch is evaluated by :func:`two_pass` (the trials flagged in the first pass are
+            evaluated again with ``second=True``, gathered into full chunks). ``fn`` must
+            equal ``two_pass`` on a batch of one.
 
     ``fn`` is traced once per call, to a jaxpr: ``custom_vmap`` needs the unbatched function
     and the default batching rule vmaps the same jaxpr, so that the Python code of ``fn`` (for
@@ -57,7 +73,9 @@ def chunked_vmap(fn: Callable, chunk_size: int, batched: Callable | None = None)
                 list(args),
                 list(in_batched),
             )
-            if axis_size <= chunk_size:
+            if second_pass:
+                out = two_pass(batched, chunk_size, *args)
+            elif axis_size <= chunk_size:
                 out = chunk_fn(*args)
             else:
                 n_chunks = -(-axis_size // chunk_size)
@@ -76,6 +94,77 @@ def chunked_vmap(fn: Callable, chunk_size: int, batched: Callable | None = None)
         return wrapped(*args)
 
     return call
+
+
+def two_pass(batched: Callable, chunk_size: int, *args):
+    """A batch in chunks, with a second pass over the trials the first pass flags.
+
+    ``batched(second, *chunk) -> (out, redo)`` evaluates one chunk of trials (every leaf of
+    ``args`` and of ``out`` has the batch on its leading axis); ``second`` is an unbatched
+    boolean scalar. The first pass evaluates every chunk with ``second=False``; the trials whose
+    ``redo`` flag is set are then gathered, in order, into chunks of ``chunk_size`` (the last one
+    part-filled, its spare lanes recomputing a flagged trial and dropped) and evaluated with
+    ``second=True``, and their outputs replace the first ones. The second pass therefore costs
+    in proportion to the flagged trials, not to the chunks that hold one. Both passes are
+    iterations of one ``while_loop`` around one call of ``batched``, so that it is traced and
+    compiled once; ``second`` is a real branch (``lax.cond``) wherever ``batched`` uses it.
+
+    A batch that is not a multiple of the chunk size is padded with copies of its first trial
+    (never flagged for the second pass, and dropped from the result).
+
+    Returns:
+        ``out`` of the whole batch.
+    """
+    size = jax.tree.leaves(args)[0].shape[0]
+    chunk = min(chunk_size, size)
+    n_chunks = -(-size // chunk)
+    padded = n_chunks * chunk
+    pad = padded - size
+
+    def padding(x):
+        if not pad:
+            return x
+        return jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
+
+    args = jax.tree.map(padding, args)
+    index = jnp.asarray(0).dtype
+    lanes = jnp.arange(chunk, dtype=index)
+    first_chunk = jax.tree.map(lambda x: x[:chunk], args)
+    out_shape, _ = jax.eval_shape(batched, jnp.asarray(False), *first_chunk)
+    out0 = jax.tree.map(lambda s: jnp.zeros((padded,) + s.shape[1:], s.dtype), out_shape)
+
+    def flagged(redo):
+        """The flagged trials' indices in order, padded to whole chunks; and their count."""
+        redo = redo & (jnp.arange(padded) < size)
+        (idx,) = jnp.nonzero(redo, size=padded + chunk, fill_value=0)
+        return idx.astype(index), jnp.sum(redo, dtype=index)
+
+    def body(state):
+        item, out, redo, idx, count = state
+        second = item >= n_chunks
+        start = jnp.where(second, item - n_chunks, item) * chunk
+        ids = jnp.where(second, jax.lax.dynamic_slice(idx, (start,), (chunk,)), start + lanes)
+        valid = ~second | (start + lanes < count)
+        new, new_redo = batched(second, *jax.tree.map(lambda x: x[ids], args))
+        dest = jnp.where(valid, ids, padded)  # spare lanes of the last chunk: dropped
+        out = jax.tree.map(lambda o, n: o.at[dest].set(n, mode="drop"), out, new)
+        redo = jnp.where(second, redo, redo.at[dest].set(new_redo, mode="drop"))
+        idx, count = jax.lax.cond(item == n_chunks - 1, flagged, lambda _: (idx, count), redo)
+        return item + 1, out, redo, idx, count
+
+    def running(state):
+        item, _, _, _, count = state
+        return item < n_chunks + (count + chunk - 1) // chunk
+
+    init = (
+        jnp.asarray(0),
+        out0,
+        jnp.zeros(padded, bool),
+        jnp.zeros(padded + chunk, index),
+        jnp.asarray(0, index),
+    )
+    _, out, _, _, _ = jax.lax.while_loop(running, body, init)
+    return jax.tree.map(lambda y: y[:size], out)
 
 
 def batched_like(ref: jax.Array, tree):

@@ -30,13 +30,12 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm
 from . import kernels
-from .batching import batched_like, chunked_vmap
+from .batching import batched_like, chunked_vmap, two_pass
 from .linear import min_norm_lstsq, min_norm_solve_normal, normal_cutoff
 from .model import NoiseModel
 from .solution import (
     RESULTS,
     CalibrationSolution,
-    _empty_solution,
     _solution_at,
     _solve_problem,
 )
@@ -109,14 +108,16 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
     solution (a pose set with a singular value that the normal equations cannot resolve,
     below ``~1e-7 s_max`` but above ``rcond s_max``, e.g. some sets of 4 or 5 CDRA poses: the
     fast step may have dropped a direction that the SVD step keeps), or where a step's smallest
-    kept pivot is below :data:`RESOLVED_PIVOT`. A batch (a chunk under ``vmap``) is solved
-    fast, and, only when one of its trials is to be redone, once more with SVD steps, whose
-    results replace those of the trials to redo. The result is therefore the SVD solver's, up to
-    rounding. (No data-dependent gather of the trials to redo: under ``jit`` with the batch
-    sharded over several CPU devices, as the sweeps do, such a gather inside a loop deadlocked.)
+    kept pivot is below :data:`RESOLVED_PIVOT`. A trial stops stepping at its first
+    unresolved step (it is to be redone anyway). The batch is solved fast, in chunks, and the
+    trials to redo are then gathered into chunks of their own and solved with SVD steps
+    (:func:`.batching.two_pass`), so that the second pass costs in proportion to those trials,
+    not to the chunks that hold one. The result is therefore the SVD solver's, up to rounding.
+    (Such a gather inside a loop once deadlocked with the batch on two CPU devices; the cause
+    was jaxlib's LAPACK thread pool, fixed by :mod:`cdra_jax.parallel`.)
 
-    The two passes run the same compiled code: ``use_svd`` is a traced scalar shared by the
-    batch, so the choice of step is a real branch (``lax.cond``) even under ``vmap``, and the
+    The two passes run the same compiled code: ``use_svd`` is a traced scalar shared by a
+    chunk, so the choice of step is a real branch (``lax.cond``) even under ``vmap``, and the
     passes are iterations of one loop, so that the solver is traced and compiled once.
     """
 
@@ -156,7 +157,8 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
             lin = kernels.linearise(frames, P, T, noise)
             dps = dps.at[k].set(lin.delta_p)
             dRs = dRs.at[k].set(lin.delta_R)
-            stepping = (k < max_iterations) & ~done & ok
+            # A fast step that cannot be trusted means a redo with SVD steps: stop stepping.
+            stepping = (k < max_iterations) & ~done & ok & resolved
             X, rank, res = step_of(lin)
             step = jnp.linalg.norm(X)
             finite = jnp.isfinite(step)
@@ -215,37 +217,16 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
         redo = redo & ((rank_lo != sol.rank) | (rank_hi != sol.rank) | ~resolved)
         return sol, redo
 
-    def solve_batch(*args):
-        """A batch (leading axis on every argument): fast, then SVD steps where needed."""
-        batched = jax.vmap(run, in_axes=(None,) + (0,) * len(args))
-        if not _normal_equations_apply(args[2].dtype, rcond):
-            return batched(jnp.asarray(True), *args)[0]  # SVD steps already: nothing to redo
-
-        def again(carry):
-            """Pass 0: fast steps for all; pass 1: SVD steps, kept where ``redo``."""
-            p, sol, redo = carry
-            new, new_redo = batched(p == 1, *args)
-            take = (p == 0) | redo
-
-            def pick(a, b):
-                return jnp.where(take.reshape(take.shape + (1,) * (a.ndim - 1)), b, a)
-
-            return p + 1, jax.tree.map(pick, sol, new), jnp.where(p == 0, new_redo, False)
-
-        frames0, measured = args[0], args[2]
-        batch = measured.shape[0]
-        init = _empty_solution(batch, frames0.shape[1], max_iterations, measured.dtype, solver)
-        _, sol, _ = jax.lax.while_loop(
-            lambda c: (c[0] == 0) | ((c[0] == 1) & jnp.any(c[2])),
-            again,
-            (jnp.asarray(0), init, jnp.zeros(batch, bool)),
-        )
-        return sol
+    def batched(second, *args):
+        """A chunk (leading axis on every argument): SVD steps if ``second``, else fast ones
+        where they apply; ``(solutions, redo)``."""
+        return jax.vmap(run, in_axes=(None,) + (0,) * len(args))(second, *args)
 
     def solve(*args):
-        return jax.tree.map(lambda x: x[0], solve_batch(*[a[None] for a in args]))
+        sol = two_pass(batched, CHUNK_SIZE, *[a[None] for a in args])
+        return jax.tree.map(lambda x: x[0], sol)
 
-    return chunked_vmap(solve, CHUNK_SIZE, solve_batch)
+    return chunked_vmap(solve, CHUNK_SIZE, batched, second_pass=True)
 
 
 def _normal_equations_apply(dtype, rcond) -> bool:
