@@ -129,8 +129,19 @@ def two_pass(batched: Callable, chunk_size: int, *args):
     args = jax.tree.map(padding, args)
     index = jnp.asarray(0).dtype
     lanes = jnp.arange(chunk, dtype=index)
-    first_chunk = jax.tree.map(lambda x: x[:chunk], args)
-    out_shape, _ = jax.eval_shape(batched, jnp.asarray(False), *first_chunk)
+    # ``batched`` traced once, to a jaxpr that the loop body replays.
+    chunk_args = jax.tree.map(lambda x: jax.ShapeDtypeStruct((chunk,) + x.shape[1:], x.dtype), args)
+    closed, shapes = jax.make_jaxpr(batched, return_shape=True)(
+        jax.ShapeDtypeStruct((), bool), *chunk_args
+    )
+    out_shape = shapes[0]
+
+    def call(second, *chunk_args):
+        flat = jax.core.eval_jaxpr(
+            closed.jaxpr, closed.consts, *jax.tree.leaves((second, chunk_args))
+        )
+        return jax.tree.unflatten(jax.tree.structure(shapes), flat)
+
     out0 = jax.tree.map(lambda s: jnp.zeros((padded,) + s.shape[1:], s.dtype), out_shape)
 
     def flagged(redo):
@@ -145,7 +156,7 @@ def two_pass(batched: Callable, chunk_size: int, *args):
         start = jnp.where(second, item - n_chunks, item) * chunk
         ids = jnp.where(second, jax.lax.dynamic_slice(idx, (start,), (chunk,)), start + lanes)
         valid = ~second | (start + lanes < count)
-        new, new_redo = batched(second, *jax.tree.map(lambda x: x[ids], args))
+        new, new_redo = call(second, *jax.tree.map(lambda x: x[ids], args))
         dest = jnp.where(valid, ids, padded)  # spare lanes of the last chunk: dropped
         out = jax.tree.map(lambda o, n: o.at[dest].set(n, mode="drop"), out, new)
         redo = jnp.where(second, redo, redo.at[dest].set(new_redo, mode="drop"))
