@@ -365,8 +365,18 @@ def _identifiable_basis(lin: kernels.Linearisation, rcond: float | None) -> Arra
     the right singular vectors divided by their singular values, and zero for singular values
     below ``rcond * s_max``, so that ``D~ B`` has orthonormal (or zero) columns.
     ``r = min(6 m, n)``.
+
+    ``V`` and ``S`` are taken from the SVD of the ``(n, n)`` triangular factor ``R`` of the
+    QR decomposition ``D~ = Q R`` (Householder, backward stable): ``R = U_R S V^T``, so that
+    ``D~ = (Q U_R) S V^T``. That costs about 0.7 of the SVD of the ``(6m, n)`` matrix itself
+    (15 CDRA poses: 118 against 161 us per trial, batched), as for the reported singular values
+    (:func:`.solution._solution_at`).
     """
-    V, s, _ = jnp.linalg.svd(lin.DT, full_matrices=False)
+    A = lin.DT.T
+    if A.shape[-2] > A.shape[-1]:
+        A = jnp.linalg.qr(A, mode="r")
+    _, s, Vt = jnp.linalg.svd(A, full_matrices=False)
+    V = jnp.swapaxes(Vt, -1, -2)
     rcond = default_rcond(lin.DT.dtype) if rcond is None else rcond
     keep = s > rcond * s[..., :1]
     scale = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
