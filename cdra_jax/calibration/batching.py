@@ -29,41 +29,44 @@ import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
 
-def chunked_vmap(
-    fn: Callable,
-    chunk_size: int,
-    batched: Callable | None = None,
-    *,
-    second_pass: bool = False,
-) -> Callable:
+def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) -> Callable:
     """``fn`` (positional array arguments) whose ``vmap`` is ``lax.map`` over vmapped chunks.
 
     Args:
         fn: a per-trial function of positional array (pytree) arguments.
         chunk_size: trials per chunk (static); a batch no larger runs as a single chunk.
-        batched: the function applied to one chunk (all arguments with a leading chunk axis);
-            ``jax.vmap(fn)`` by default. It lets a solver take decisions per chunk.
-        second_pass: ``batched`` is then ``batched(second, *chunk) -> (out, redo)``, with
-            ``second`` an unbatched boolean scalar and ``redo`` a ``(chunk,)`` boolean: the
-            batch is evaluated by :func:`two_pass` (the trials flagged in the first pass are
-            evaluated again with ``second=True``, gathered into full chunks). ``fn`` must
-            equal ``two_pass`` on a batch of one.
+        second_pass: ``fn`` is then ``fn(second, *args) -> (out, redo)``, with ``second`` a
+            boolean scalar, the same for a whole chunk (unbatched under ``vmap``, so that a
+            ``lax.cond`` on it stays a real branch), and ``redo`` a boolean: the returned
+            function takes ``*args`` and returns ``out``, evaluated by :func:`two_pass` (the
+            trials flagged with ``second=False`` are evaluated again with ``second=True``,
+            gathered into chunks of their own); an unbatched call is a batch of one.
 
     ``fn`` is traced once per call, to a jaxpr: ``custom_vmap`` needs the unbatched function
-    and the default batching rule vmaps the same jaxpr, so that the Python code of ``fn`` (for
-    an optimistix solver, most of the lowering time) is not traced twice.
+    and the batching rule vmaps the same jaxpr, so that the Python code of ``fn`` (for an
+    optimistix solver, most of the lowering time) is not traced twice.
     """
 
     def call(*args):
-        closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
+        head = (jax.ShapeDtypeStruct((), bool),) if second_pass else ()
+        closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*head, *args)
         out_tree = jax.tree.structure(out_shape)
 
         def replay(*a):
             flat = jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *jax.tree.leaves(a))
             return jax.tree.unflatten(out_tree, flat)
 
-        wrapped = custom_vmap(replay)
-        chunk_fn = jax.vmap(replay) if batched is None else batched
+        if second_pass:
+            chunk_fn = jax.vmap(replay, in_axes=(None,) + (0,) * len(args))
+
+            def unbatched(*a):
+                out = two_pass(chunk_fn, chunk_size, *jax.tree.map(lambda x: x[None], a))
+                return jax.tree.map(lambda y: y[0], out)
+
+            wrapped = custom_vmap(unbatched)
+        else:
+            chunk_fn = jax.vmap(replay)
+            wrapped = custom_vmap(replay)
 
         @wrapped.def_vmap
         def _rule(axis_size, in_batched, *args):
@@ -74,7 +77,7 @@ def chunked_vmap(
                 list(in_batched),
             )
             if second_pass:
-                out = two_pass(batched, chunk_size, *args)
+                out = two_pass(chunk_fn, chunk_size, *args)
             elif axis_size <= chunk_size:
                 out = chunk_fn(*args)
             else:

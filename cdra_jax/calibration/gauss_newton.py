@@ -30,7 +30,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm
 from . import kernels
-from .batching import batched_like, chunked_vmap, two_pass
+from .batching import batched_like, chunked_vmap
 from .linear import min_norm_lstsq, min_norm_solve_normal, normal_cutoff
 from .model import NoiseModel
 from .solution import (
@@ -217,16 +217,7 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
         redo = redo & ((rank_lo != sol.rank) | (rank_hi != sol.rank) | ~resolved)
         return sol, redo
 
-    def batched(second, *args):
-        """A chunk (leading axis on every argument): SVD steps if ``second``, else fast ones
-        where they apply; ``(solutions, redo)``."""
-        return jax.vmap(run, in_axes=(None,) + (0,) * len(args))(second, *args)
-
-    def solve(*args):
-        sol = two_pass(batched, CHUNK_SIZE, *[a[None] for a in args])
-        return jax.tree.map(lambda x: x[0], sol)
-
-    return chunked_vmap(solve, CHUNK_SIZE, batched, second_pass=True)
+    return chunked_vmap(run, CHUNK_SIZE, second_pass=True)
 
 
 def _normal_equations_apply(dtype, rcond) -> bool:
