@@ -37,6 +37,7 @@ from cdra_jax.calibration.linear import (
     min_norm_solve_normal,
     normal_cutoff,
     pivoted_cholesky,
+    whitening_basis_normal,
 )
 
 NOISE = NoiseModel(position_mm=0.05, rotation_rad=1e-3)
@@ -178,6 +179,22 @@ def test_normal_cutoff():
     assert normal_cutoff(np.float64, 1e-12) == normal_cutoff(np.float64)  # the floor
 
 
+def test_whitening_basis_normal_spans_the_range_and_whitens():
+    """``B = L (L^T L)^-1``: ``D B`` has orthonormal kept columns, the dropped ones are zero,
+    and ``B`` spans the same subspace as the SVD basis ``V S^+`` (equal projectors)."""
+    for seed in range(3):
+        D, _ = _rank_deficient(seed)
+        B, rank, smallest = whitening_basis_normal(D.T @ D)
+        B = np.asarray(B)
+        assert int(rank) == 22 and 1e-9 < float(smallest) < 1.0
+        assert np.all(B[:, 22:] == 0)
+        np.testing.assert_allclose((D @ B[:, :22]).T @ (D @ B[:, :22]), np.eye(22), atol=1e-9)
+        _, s, Vt = np.linalg.svd(D)
+        V = Vt[:22].T
+        Q, _ = np.linalg.qr(B[:, :22])
+        np.testing.assert_allclose(Q @ Q.T, V @ V.T, rtol=0, atol=1e-10)
+
+
 # --------------------------------------------------------------------------- the paper solver
 
 
@@ -218,6 +235,34 @@ def test_fast_paper_solver_is_the_svd_solver(cdra, chunk_size, monkeypatch):
     np.testing.assert_array_equal(fast.rank, exact.rank)
     np.testing.assert_array_equal(fast.result._value, exact.result._value)
     for field in ("frames", "errors", "delta_p", "singular_values"):
+        a, b = np.asarray(getattr(fast, field)), np.asarray(getattr(exact, field))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-8, err_msg=field)
+
+
+@pytest.mark.slow
+def test_lm_fast_basis_is_redone_where_unresolved(cdra, monkeypatch):
+    """LM's identifiable basis from the normal equations (``whitening_basis_normal``), and the
+    SVD basis for the trials (6 poses: some sets) whose pivots are not resolved or whose rank
+    differs, gathered from chunks of 5: the results are those of the SVD basis (an explicit
+    ``rcond``) to rounding; the rank and the result codes are equal."""
+    from cdra_jax.calibration import levenberg_marquardt
+
+    monkeypatch.setattr(levenberg_marquardt, "CHUNK_SIZE", 5)
+    keys = jax.random.split(jax.random.PRNGKey(11), 24)
+    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 6))(keys)
+    smallest = np.asarray(_smallest_pivot(cdra, q, T))
+    assert 0 < (smallest >= RESOLVED_PIVOT).sum() < smallest.size
+
+    def batch(rcond):
+        f = jax.vmap(lambda qq, tt: calibrate_lm(cdra, qq, tt, rcond=rcond, throw=False))
+        return eqx.filter_jit(f)(q, T)
+
+    fast, exact = batch(None), batch(default_rcond(jnp.float64))
+    np.testing.assert_array_equal(fast.rank, exact.rank)
+    np.testing.assert_array_equal(fast.result._value, exact.result._value)
+    assert np.all(np.asarray(fast.converged))
+    assert np.abs(np.asarray(fast.iterations) - np.asarray(exact.iterations)).max() <= 1
+    for field in ("frames", "errors"):
         a, b = np.asarray(getattr(fast, field)), np.asarray(getattr(exact, field))
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8, err_msg=field)
 

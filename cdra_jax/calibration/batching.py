@@ -40,7 +40,8 @@ def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) ->
             ``lax.cond`` on it stays a real branch), and ``redo`` a boolean: the returned
             function takes ``*args`` and returns ``out``, evaluated by :func:`two_pass` (the
             trials flagged with ``second=False`` are evaluated again with ``second=True``,
-            gathered into chunks of their own); an unbatched call is a batch of one.
+            gathered into chunks of their own); for an unbatched call the second pass is a
+            ``lax.cond`` on the flag.
 
     ``fn`` is traced once per call, to a jaxpr: ``custom_vmap`` needs the unbatched function
     and the batching rule vmaps the same jaxpr, so that the Python code of ``fn`` (for an
@@ -60,8 +61,9 @@ def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) ->
             chunk_fn = jax.vmap(replay, in_axes=(None,) + (0,) * len(args))
 
             def unbatched(*a):
-                out = two_pass(chunk_fn, chunk_size, *jax.tree.map(lambda x: x[None], a))
-                return jax.tree.map(lambda y: y[0], out)
+                # One trial: the second pass is a branch (replaying the jaxpr, not batching it).
+                out, redo = replay(jnp.asarray(False), *a)
+                return jax.lax.cond(redo, lambda: replay(jnp.asarray(True), *a)[0], lambda: out)
 
             wrapped = custom_vmap(unbatched)
         else:

@@ -142,13 +142,40 @@ def min_norm_solve_normal(
     g = jnp.asarray(g, N.dtype)
     if cutoff is None:
         cutoff = normal_cutoff(N.dtype)
+    L, C, rank, smallest = _range_factor(N, cutoff)
+    z = jax.scipy.linalg.cho_solve((C, True), L.T @ g)
+    z = jax.scipy.linalg.cho_solve((C, True), z)
+    return L @ z, rank, smallest
+
+
+def whitening_basis_normal(N: ArrayLike, cutoff: float | None = None) -> tuple[Array, Array, Array]:
+    """A basis ``B (n, n)`` of the range of ``N = D^T D`` with ``D B`` orthonormal, without an SVD.
+
+    With ``L`` the factor of :func:`pivoted_cholesky` (``N ~= L L^T``, ``range(L) =
+    range(N)``), ``B = L (L^T L)^-1``: then ``B^T N B = I`` on the kept columns, so ``D B`` has
+    orthonormal columns, and the dropped columns of ``B`` are zero. It spans the same subspace
+    as ``V S^+`` of the SVD ``D = U S V^T`` (up to an orthogonal change of coordinates), to the
+    accuracy of the normal equations (:func:`min_norm_solve_normal`).
+
+    Returns:
+        ``(B (n, n), rank, smallest_pivot)`` as :func:`min_norm_solve_normal`.
+    """
+    N = jnp.asarray(N)
+    if cutoff is None:
+        cutoff = normal_cutoff(N.dtype)
+    L, C, rank, smallest = _range_factor(N, cutoff)
+    return jax.scipy.linalg.cho_solve((C, True), L.T).T, rank, smallest
+
+
+def _range_factor(N: Array, cutoff: float) -> tuple[Array, Array, Array, Array]:
+    """``(L, C, rank, smallest_pivot)``: :func:`pivoted_cholesky` of ``N``, the Cholesky factor
+    ``C`` of ``L^T L`` (the dropped columns given a unit diagonal), and the smallest kept pivot
+    relative to ``max(diag(N))`` (``inf`` for rank 0)."""
     L, rank = pivoted_cholesky(N, cutoff)
     kept = jnp.arange(N.shape[-1]) < rank
     G = L.T @ L + jnp.diag(jnp.where(kept, 0.0, 1.0).astype(N.dtype))
     C = jnp.linalg.cholesky(G)
-    z = jax.scipy.linalg.cho_solve((C, True), L.T @ g)
-    z = jax.scipy.linalg.cho_solve((C, True), z)
     # Column j of L peaks at the pivot row with sqrt(pivot_j) (|S_ij| <= sqrt(S_ii S_jj)).
     pivots = jnp.max(L * L, axis=0) / jnp.max(jnp.diagonal(N))
     smallest = jnp.min(jnp.where(kept, pivots, jnp.inf))
-    return L @ z, rank, smallest
+    return L, C, rank, smallest
