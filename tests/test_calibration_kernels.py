@@ -179,6 +179,16 @@ def test_normal_cutoff():
     assert normal_cutoff(np.float64, 1e-12) == normal_cutoff(np.float64)  # the floor
 
 
+def test_fast_steps_apply_in_float64_with_enough_rows():
+    """The normal-equation steps and basis: float64, the default rcond, > 1.5 n rows."""
+    from cdra_jax.calibration.gauss_newton import _normal_equations_apply
+
+    assert _normal_equations_apply(np.float64, None, 42, 24)
+    assert not _normal_equations_apply(np.float64, None, 36, 24)  # 6 CDRA poses: SVD steps
+    assert not _normal_equations_apply(np.float64, 1e-10, 90, 24)
+    assert not _normal_equations_apply(np.float32, None, 90, 24)
+
+
 def test_whitening_basis_normal_spans_the_range_and_whitens():
     """``B = L (L^T L)^-1``: ``D B`` has orthonormal kept columns, the dropped ones are zero,
     and ``B`` spans the same subspace as the SVD basis ``V S^+`` (equal projectors)."""
@@ -218,12 +228,13 @@ def _batch(arm, q, T, exact):
 @pytest.mark.slow
 @pytest.mark.parametrize("chunk_size", [128, 5])
 def test_fast_paper_solver_is_the_svd_solver(cdra, chunk_size, monkeypatch):
-    """6 poses: a third of the sets have an identifiable direction that the normal equations do
-    not resolve (pivot below RESOLVED_PIVOT, or dropped): those are redone with SVD steps, in one
-    chunk, or (chunks of 5) gathered from several chunks into chunks of their own."""
+    """7 poses (42 rows, the fewest for which the fast step is tried): some sets have an
+    identifiable direction that the normal equations do not resolve (pivot below
+    RESOLVED_PIVOT, or dropped): those are redone with SVD steps, in one chunk, or (chunks of
+    5) gathered from several chunks into chunks of their own."""
     monkeypatch.setattr(gauss_newton, "CHUNK_SIZE", chunk_size)
-    keys = jax.random.split(jax.random.PRNGKey(11), 24)
-    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 6))(keys)
+    keys = jax.random.split(jax.random.PRNGKey(11), 48)
+    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 7))(keys)
     # Both paths are exercised: some sets are resolved at the nominal model, some are not.
     smallest = _smallest_pivot(cdra, q, T)
     resolved = np.asarray(smallest) >= RESOLVED_PIVOT
@@ -242,14 +253,14 @@ def test_fast_paper_solver_is_the_svd_solver(cdra, chunk_size, monkeypatch):
 @pytest.mark.slow
 def test_lm_fast_basis_is_redone_where_unresolved(cdra, monkeypatch):
     """LM's identifiable basis from the normal equations (``whitening_basis_normal``), and the
-    SVD basis for the trials (6 poses: some sets) whose pivots are not resolved or whose rank
+    SVD basis for the trials (7 poses: some sets) whose pivots are not resolved or whose rank
     differs, gathered from chunks of 5: the results are those of the SVD basis (an explicit
     ``rcond``) to rounding; the rank and the result codes are equal."""
     from cdra_jax.calibration import levenberg_marquardt
 
     monkeypatch.setattr(levenberg_marquardt, "CHUNK_SIZE", 5)
-    keys = jax.random.split(jax.random.PRNGKey(11), 24)
-    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 6))(keys)
+    keys = jax.random.split(jax.random.PRNGKey(11), 48)
+    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 7))(keys)
     smallest = np.asarray(_smallest_pivot(cdra, q, T))
     assert 0 < (smallest >= RESOLVED_PIVOT).sum() < smallest.size
 

@@ -132,7 +132,7 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
         nan = jnp.asarray(jnp.nan, dtype)
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
         cutoff = normal_cutoff(dtype)
-        fast_allowed = _normal_equations_apply(dtype, rcond)
+        fast_allowed = _normal_equations_apply(dtype, rcond, 6 * measured.shape[0], n)
 
         def svd_step(lin):
             X, rank, _ = min_norm_lstsq(lin.DT.T, lin.Y, rcond)
@@ -220,11 +220,17 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
     return chunked_vmap(run, CHUNK_SIZE, second_pass=True)
 
 
-def _normal_equations_apply(dtype, rcond) -> bool:
-    """Whether the fast (normal-equation) step applies: float64 and the default ``rcond``.
+def _normal_equations_apply(dtype, rcond, rows: int, n: int) -> bool:
+    """Whether the fast (normal-equation) step applies: float64, the default ``rcond``, and a
+    stacked system (Eq. 9) of more than ``1.5 n`` rows for ``n`` parameters.
 
     An explicit ``rcond`` truncates by singular values, which a pivoted Cholesky factorisation
     of the normal equations does not reproduce (it drops pivots, not singular directions); in
-    float32 the normal equations cannot resolve the CDRA's smallest singular values.
+    float32 the normal equations cannot resolve the CDRA's smallest singular values. The row
+    count is a matter of speed only (results equal to rounding either way): with few rows the
+    weakest identifiable direction is too weak for the normal equations and the trial is solved
+    again with SVD steps. For the CDRA (n = 24) that was the case for 98 % of the pose sets of
+    m = 5 poses (30 rows), 73 % of m = 6 (36 rows), 5.5 % of m = 7 and 0.4 % of m = 8 (4096
+    random sets each), so up to ``1.5 n`` rows the SVD steps are taken from the start.
     """
-    return rcond is None and bool(jnp.finfo(dtype).eps < 1e-12)
+    return rcond is None and bool(jnp.finfo(dtype).eps < 1e-12) and 2 * rows > 3 * n

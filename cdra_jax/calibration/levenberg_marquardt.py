@@ -17,7 +17,8 @@ damped steps at the rounding floor are mostly rejected and the solve needs tens 
 Besides optimistix' own termination the loop stops on MINPACK-style tests of the next
 proposed step (:func:`_converged`).
 
-In float64 (default ``rcond``, ``6m >= n``) the basis is taken from the normal equations
+In float64 (default ``rcond``, more than ``1.5 n`` rows:
+:func:`.gauss_newton._normal_equations_apply`) the basis is taken from the normal equations
 instead of an SVD: ``B = L (L^T L)^-1`` with ``L`` the pivoted Cholesky factor of
 ``D~^T D~`` (:func:`.linear.whitening_basis_normal`), which spans the same subspace with
 ``D~ B`` orthonormal, an orthogonal change of the coordinates ``u`` (LM's steps are invariant
@@ -339,8 +340,7 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         dtype = measured.dtype
         n = 6 * frames0.shape[0]
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
-        # The fast basis has n columns; the SVD basis min(6m, n).
-        fast_allowed = _normal_equations_apply(dtype, rcond) and 6 * T.shape[-1] >= n
+        fast_allowed = _normal_equations_apply(dtype, rcond, 6 * T.shape[-1], n)
 
         def iterate(lin0):
             basis, rank, resolved = basis_of(lin0, use_svd, fast_allowed)
