@@ -10,12 +10,14 @@ Performance (see ``benchmarks/README.md``). The solver is written for Monte-Carl
 
 * Eq. 9 is assembled in the pose-last layout of :mod:`.kernels` (the module poses, constant
   during a calibration, are computed once);
-* in float64 the step solves the normal equations ``D^T D X = D^T Y`` with a diagonally pivoted
+* in float64, with more than ``1.5 n`` rows in Eq. 9 (:func:`_normal_equations_apply`), the
+  step solves the normal equations ``D^T D X = D^T Y`` with a diagonally pivoted
   Cholesky factorisation (:func:`.linear.min_norm_solve_normal`): rank-revealing and minimum
   norm like the SVD of ``D~``, with the pivot cut-off of :func:`.linear.normal_cutoff`, at a
-  fraction of the cost of an SVD per iteration. In lower precision the normal equations cannot
-  resolve the CDRA's small singular values and the SVD of ``D~`` (:func:`.linear.min_norm_lstsq`)
-  is used;
+  fraction of the cost of an SVD per iteration. In lower precision, or with fewer rows, the
+  normal equations cannot resolve the CDRA's small singular values and the SVD of ``D~``
+  (:func:`.linear.min_norm_lstsq`) is used; trials whose fast steps cannot be trusted are
+  solved again with SVD steps, gathered into chunks of their own (:func:`.batching.two_pass`);
 * the reported ``rank`` and ``singular_values`` are those of the SVD of ``D~`` at the solution,
   with the singular-value cut-off ``rcond`` (:func:`.linear.default_rcond`), as before;
 * under ``vmap`` the trials run in chunks (:mod:`.batching`).
