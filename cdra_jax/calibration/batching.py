@@ -50,12 +50,7 @@ def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) ->
 
     def call(*args):
         head = (jax.ShapeDtypeStruct((), bool),) if second_pass else ()
-        closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*head, *args)
-        out_tree = jax.tree.structure(out_shape)
-
-        def replay(*a):
-            flat = jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *jax.tree.leaves(a))
-            return jax.tree.unflatten(out_tree, flat)
+        replay, _ = _traced_once(fn, *head, *args)
 
         if second_pass:
             chunk_fn = jax.vmap(replay, in_axes=(None,) + (0,) * len(args))
@@ -136,17 +131,7 @@ def two_pass(batched: Callable, chunk_size: int, *args):
     lanes = jnp.arange(chunk, dtype=index)
     # ``batched`` traced once, to a jaxpr that the loop body replays.
     chunk_args = jax.tree.map(lambda x: jax.ShapeDtypeStruct((chunk,) + x.shape[1:], x.dtype), args)
-    closed, shapes = jax.make_jaxpr(batched, return_shape=True)(
-        jax.ShapeDtypeStruct((), bool), *chunk_args
-    )
-    out_shape = shapes[0]
-
-    def call(second, *chunk_args):
-        flat = jax.core.eval_jaxpr(
-            closed.jaxpr, closed.consts, *jax.tree.leaves((second, chunk_args))
-        )
-        return jax.tree.unflatten(jax.tree.structure(shapes), flat)
-
+    call, (out_shape, _) = _traced_once(batched, jax.ShapeDtypeStruct((), bool), *chunk_args)
     out0 = jax.tree.map(lambda s: jnp.zeros((padded,) + s.shape[1:], s.dtype), out_shape)
 
     def flagged(redo):
@@ -181,6 +166,20 @@ def two_pass(batched: Callable, chunk_size: int, *args):
     )
     _, out, _, _, _ = jax.lax.while_loop(running, body, init)
     return jax.tree.map(lambda y: y[:size], out)
+
+
+def _traced_once(fn: Callable, *args):
+    """``fn`` traced once, at ``args`` (arrays, tracers or ``ShapeDtypeStruct``s), to a jaxpr:
+    ``(replay, out_shape)``, ``replay(*args)`` evaluating the jaxpr without tracing ``fn``'s
+    Python again."""
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
+    out_tree = jax.tree.structure(out_shape)
+
+    def replay(*a):
+        flat = jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *jax.tree.leaves(a))
+        return jax.tree.unflatten(out_tree, flat)
+
+    return replay, out_shape
 
 
 def batched_like(ref: jax.Array, tree):
