@@ -30,12 +30,13 @@ from cdra_jax.calibration import (
     stacked_system,
     whitening,
 )
-from cdra_jax.calibration.gauss_newton import RESOLVED_PIVOT
 from cdra_jax.calibration.levenberg_marquardt import residual_jacobian
 from cdra_jax.calibration.linear import (
+    RESOLVED_PIVOT,
     min_norm_lstsq,
     min_norm_solve_normal,
     normal_cutoff,
+    normal_equations_apply,
     pivoted_cholesky,
     whitening_basis_normal,
 )
@@ -181,12 +182,10 @@ def test_normal_cutoff():
 
 def test_fast_steps_apply_in_float64_with_enough_rows():
     """The normal-equation steps and basis: float64, the default rcond, > 1.5 n rows."""
-    from cdra_jax.calibration.gauss_newton import _normal_equations_apply
-
-    assert _normal_equations_apply(np.float64, None, 42, 24)
-    assert not _normal_equations_apply(np.float64, None, 36, 24)  # 6 CDRA poses: SVD steps
-    assert not _normal_equations_apply(np.float64, 1e-10, 90, 24)
-    assert not _normal_equations_apply(np.float32, None, 90, 24)
+    assert normal_equations_apply(np.float64, None, 42, 24)
+    assert not normal_equations_apply(np.float64, None, 36, 24)  # 6 CDRA poses: SVD steps
+    assert not normal_equations_apply(np.float64, 1e-10, 90, 24)
+    assert not normal_equations_apply(np.float32, None, 90, 24)
 
 
 def test_whitening_basis_normal_spans_the_range_and_whitens():

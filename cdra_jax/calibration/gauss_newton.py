@@ -10,7 +10,7 @@ Performance (see ``benchmarks/README.md``). The solver is written for Monte-Carl
 
 * Eq. 9 is assembled in the pose-last layout of :mod:`.kernels` (the module poses, constant
   during a calibration, are computed once);
-* in float64, with more than ``1.5 n`` rows in Eq. 9 (:func:`_normal_equations_apply`), the
+* in float64, with more than ``1.5 n`` rows in Eq. 9 (:func:`.linear.normal_equations_apply`), the
   step solves the normal equations ``D^T D X = D^T Y`` with a diagonally pivoted
   Cholesky factorisation (:func:`.linear.min_norm_solve_normal`): rank-revealing and minimum
   norm like the SVD of ``D~``, with the pivot cut-off of :func:`.linear.normal_cutoff`, at a
@@ -33,7 +33,13 @@ from .. import lie
 from ..arm import Arm
 from . import kernels
 from .batching import batched_like, chunked_vmap
-from .linear import min_norm_lstsq, min_norm_solve_normal, normal_cutoff
+from .linear import (
+    RESOLVED_PIVOT,
+    min_norm_lstsq,
+    min_norm_solve_normal,
+    normal_cutoff,
+    normal_equations_apply,
+)
 from .model import NoiseModel
 from .solution import (
     RESULTS,
@@ -44,15 +50,6 @@ from .solution import (
 
 CHUNK_SIZE = 128
 """Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
-
-RESOLVED_PIVOT = 1e-9
-"""Smallest kept pivot (relative to ``max(diag(N))``) for which the fast step is trusted.
-
-The normal equations lose ``cond(D)^2 eps`` relative accuracy: with a pivot of ``1e-9`` the
-fast step agrees with the SVD step to ``~1e-7`` of its size in the weakest direction and the
-calibrated frames to ``~1e-9`` (measured over 1000 trials of 5 to 15 CDRA poses); pose sets with
-a smaller pivot (some of 5 to 8 poses; none of 1000 with 15) are solved with SVD steps.
-"""
 
 
 def calibrate_paper(
@@ -110,7 +107,7 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
     solution (a pose set with a singular value that the normal equations cannot resolve,
     below ``~1e-7 s_max`` but above ``rcond s_max``, e.g. some sets of 4 or 5 CDRA poses: the
     fast step may have dropped a direction that the SVD step keeps), or where a step's smallest
-    kept pivot is below :data:`RESOLVED_PIVOT`. A trial stops stepping at its first
+    kept pivot is below :data:`.linear.RESOLVED_PIVOT`. A trial stops stepping at its first
     unresolved step (it is to be redone anyway). The batch is solved fast, in chunks, and the
     trials to redo are then gathered into chunks of their own and solved with SVD steps
     (:func:`.batching.two_pass`), so that the second pass costs in proportion to those trials,
@@ -134,7 +131,7 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
         nan = jnp.asarray(jnp.nan, dtype)
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
         cutoff = normal_cutoff(dtype)
-        fast_allowed = _normal_equations_apply(dtype, rcond, 6 * measured.shape[0], n)
+        fast_allowed = normal_equations_apply(dtype, rcond, 6 * measured.shape[0], n)
 
         def svd_step(lin):
             X, rank, _ = min_norm_lstsq(lin.DT.T, lin.Y, rcond)
@@ -220,19 +217,3 @@ def _paper_solver(*, max_iterations, tol, rcond, weighted, solver):
         return sol, redo
 
     return chunked_vmap(run, CHUNK_SIZE, second_pass=True)
-
-
-def _normal_equations_apply(dtype, rcond, rows: int, n: int) -> bool:
-    """Whether the fast (normal-equation) step applies: float64, the default ``rcond``, and a
-    stacked system (Eq. 9) of more than ``1.5 n`` rows for ``n`` parameters.
-
-    An explicit ``rcond`` truncates by singular values, which a pivoted Cholesky factorisation
-    of the normal equations does not reproduce (it drops pivots, not singular directions); in
-    float32 the normal equations cannot resolve the CDRA's smallest singular values. The row
-    count is a matter of speed only (results equal to rounding either way): with few rows the
-    weakest identifiable direction is too weak for the normal equations and the trial is solved
-    again with SVD steps. For the CDRA (n = 24) that was the case for 98 % of the pose sets of
-    m = 5 poses (30 rows), 73 % of m = 6 (36 rows), 5.5 % of m = 7 and 0.4 % of m = 8 (4096
-    random sets each), so up to ``1.5 n`` rows the SVD steps are taken from the start.
-    """
-    return rcond is None and bool(jnp.finfo(dtype).eps < 1e-12) and 2 * rows > 3 * n

@@ -18,12 +18,12 @@ Besides optimistix' own termination the loop stops on MINPACK-style tests of the
 proposed step (:func:`_converged`).
 
 In float64 (default ``rcond``, more than ``1.5 n`` rows:
-:func:`.gauss_newton._normal_equations_apply`) the basis is taken from the normal equations
+:func:`.linear.normal_equations_apply`) the basis is taken from the normal equations
 instead of an SVD: ``B = L (L^T L)^-1`` with ``L`` the pivoted Cholesky factor of
 ``D~^T D~`` (:func:`.linear.whitening_basis_normal`), which spans the same subspace with
 ``D~ B`` orthonormal, an orthogonal change of the coordinates ``u`` (LM's steps are invariant
 under it, its max-norm stopping tests to rounding). As for the paper solver's steps, a trial
-whose basis pivots are not resolved (:data:`.gauss_newton.RESOLVED_PIVOT`) or whose basis rank
+whose basis pivots are not resolved (:data:`.linear.RESOLVED_PIVOT`) or whose basis rank
 differs from the SVD rank at the solution is solved again with the SVD basis, the trials to
 redo gathered into chunks of their own (:func:`.batching.two_pass`). 15 CDRA poses, 10^4
 trials: 1.25x faster (LM / paper solver time, interleaved: 2.03-2.18 -> 1.59-1.63).
@@ -82,8 +82,12 @@ from .. import lie
 from ..arm import Arm
 from . import kernels
 from .batching import batched_like, chunked_vmap
-from .gauss_newton import RESOLVED_PIVOT, _normal_equations_apply
-from .linear import default_rcond, whitening_basis_normal
+from .linear import (
+    RESOLVED_PIVOT,
+    default_rcond,
+    normal_equations_apply,
+    whitening_basis_normal,
+)
 from .model import NoiseModel
 from .solution import RESULTS, CalibrationSolution, _solution_at, _solve_problem
 
@@ -334,13 +338,13 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         after the iteration as two calls compiled the model twice: LM's compile took ~0.3 s
         longer.) Returns ``(solution, redo)``: redo with the SVD basis (``use_svd``) where the
         fast basis' rank differs from the SVD rank at the solution or its pivots are not
-        resolved (:data:`.gauss_newton.RESOLVED_PIVOT`), as the paper solver does."""
+        resolved (:data:`.linear.RESOLVED_PIVOT`), as the paper solver does."""
         frames0, poses, measured = args[:3]
         P, T, noise = setup(*args)
         dtype = measured.dtype
         n = 6 * frames0.shape[0]
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
-        fast_allowed = _normal_equations_apply(dtype, rcond, 6 * T.shape[-1], n)
+        fast_allowed = normal_equations_apply(dtype, rcond, 6 * T.shape[-1], n)
 
         def iterate(lin0):
             basis, rank, resolved = basis_of(lin0, use_svd, fast_allowed)

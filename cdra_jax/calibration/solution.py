@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -159,31 +158,6 @@ def _assemble_solution(
         rank=rank,
         singular_values=jnp.pad(singular_values, (0, max(0, n - singular_values.shape[-1]))),
         cost=cost,
-        solver=solver,
-    )
-
-
-def _empty_solution(
-    batch: int, k_frames: int, max_iterations: int, dtype, solver: str
-) -> CalibrationSolution:
-    """A batch of ``batch`` all-zero solutions (the structure the solvers return), e.g. the
-    initial value of a loop that fills it in, without tracing a solver for its shapes."""
-    n = 6 * k_frames
-
-    def zeros(*shape, dtype=dtype):
-        return jnp.zeros((batch, *shape), dtype)
-
-    return CalibrationSolution(
-        frames=zeros(k_frames, 4, 4),
-        errors=zeros(k_frames, 6),
-        result=jax.tree.map(lambda v: jnp.broadcast_to(v, (batch,)), RESULTS.successful),  # type: ignore[arg-type]
-        iterations=zeros(dtype=jnp.asarray(0).dtype),
-        step_norm=zeros(max_iterations),
-        delta_p=zeros(max_iterations + 1),
-        delta_R=zeros(max_iterations + 1),
-        rank=zeros(dtype=jnp.asarray(0).dtype),
-        singular_values=zeros(n),
-        cost=zeros(),
         solver=solver,
     )
 
