@@ -93,6 +93,21 @@ def test_chunked_vmap_second_pass_under_vmap():
     assert f(x[3]) == 30.0 and f(x[4]) == 4.0
 
 
+def test_empty_batches_give_empty_outputs():
+    """Zero trials: empty outputs of the right shapes, no error (a division by the chunk size
+    raised ``ZeroDivisionError`` before)."""
+    x = jnp.zeros((0, 3))
+    out = jax.jit(lambda x: two_pass(_flag_multiples_of_three([]), 4, x))(x)
+    assert out.shape == (0, 3) and out.dtype == x.dtype
+
+    def one(second, x):
+        return jnp.where(second, 10 * x, x), jnp.any(x < 0) & ~second
+
+    assert jax.vmap(chunked_vmap(one, 4, second_pass=True))(x).shape == (0, 3)
+    k, root = jax.vmap(chunked_vmap(_newton_sqrt, 4), in_axes=(0, 0, None))(x[:, 0], x[:, 0], 1e-9)
+    assert k.shape == (0,) and root.shape == (0,)
+
+
 def test_batched_like_changes_no_value():
     """``batched_like`` (the solvers' initial loop carries) is the identity, for either value of
     the reference, batched or not, NaNs included."""

@@ -330,6 +330,15 @@ def test_vmap_equals_loop_and_isolates_a_broken_trial(cdra, name, noisy_trials):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9, err_msg=f"{field} of trial {i}")
 
 
+@pytest.mark.parametrize("name", ["paper", "lm"])
+def test_a_batch_of_no_trials_gives_empty_solutions(cdra, name):
+    q = jnp.zeros((0, M, cdra.dof))
+    T = jnp.zeros((0, M, 4, 4))
+    sol = _solve_batch(name, cdra, q, T)
+    assert sol.frames.shape == (0, *cdra.frames.shape)
+    assert sol.result._value.shape == (0,) and sol.iterations.shape == (0,)
+
+
 @pytest.fixture(scope="module")
 def noisy_trials(cdra):
     """256 trials with different poses, preset errors and noise (shared by both solvers)."""

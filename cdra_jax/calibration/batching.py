@@ -110,12 +110,18 @@ def two_pass(batched: Callable, chunk_size: int, *args):
     compiled once; ``second`` is a real branch (``lax.cond``) wherever ``batched`` uses it.
 
     A batch that is not a multiple of the chunk size is padded with copies of its first trial
-    (never flagged for the second pass, and dropped from the result).
+    (never flagged for the second pass, and dropped from the result). An empty batch gives
+    empty outputs.
 
     Returns:
         ``out`` of the whole batch.
     """
     size = jax.tree.leaves(args)[0].shape[0]
+    if size == 0:
+        # No trials: outputs with no trials (the chunk function's shapes, traced for one).
+        one = jax.tree.map(lambda x: jax.ShapeDtypeStruct((1,) + x.shape[1:], x.dtype), args)
+        out_shape, _ = jax.eval_shape(batched, jax.ShapeDtypeStruct((), bool), *one)
+        return jax.tree.map(lambda s: jnp.zeros((0,) + s.shape[1:], s.dtype), out_shape)
     chunk = min(chunk_size, size)
     n_chunks = -(-size // chunk)
     padded = n_chunks * chunk
