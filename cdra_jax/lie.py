@@ -31,9 +31,19 @@ from jax.typing import ArrayLike
 _SMALL_ANGLE_SQ = 1e-2
 
 
+def _shaped(x: ArrayLike, trailing: tuple[int, ...], fn: str, arg: str) -> Array:
+    """``x`` as an array, after checking its trailing shape (static: a ``ValueError`` at trace
+    time). Indexing past a short axis would otherwise clamp silently under ``jit``."""
+    x = jnp.asarray(x)
+    if x.shape[max(x.ndim - len(trailing), 0) :] != trailing:
+        want = ", ".join(["..."] + [str(d) for d in trailing])
+        raise ValueError(f"lie.{fn}: {arg} must have shape ({want}), got {x.shape}")
+    return x
+
+
 def hat3(w: ArrayLike) -> Array:
     """Skew-symmetric matrix of a 3-vector: ``(..., 3) -> (..., 3, 3)``, ``hat(w) x = w x x``."""
-    w = jnp.asarray(w)
+    w = _shaped(w, (3,), "hat3", "w")
     x, y, z = w[..., 0], w[..., 1], w[..., 2]
     o = jnp.zeros_like(x)
     return jnp.stack(
@@ -48,7 +58,7 @@ def hat3(w: ArrayLike) -> Array:
 
 def vee3(W: ArrayLike) -> Array:
     """Inverse of :func:`hat3` (uses the skew part): ``(..., 3, 3) -> (..., 3)``."""
-    W = jnp.asarray(W)
+    W = _shaped(W, (3, 3), "vee3", "W")
     return 0.5 * jnp.stack(
         [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]],
         axis=-1,
@@ -57,7 +67,7 @@ def vee3(W: ArrayLike) -> Array:
 
 def hat(xi: ArrayLike) -> Array:
     """se(3) matrix of a twist ``(v, w)`` (Eq. 23): ``(..., 6) -> (..., 4, 4)``."""
-    xi = jnp.asarray(xi)
+    xi = _shaped(xi, (6,), "hat", "xi")
     top = jnp.concatenate([hat3(xi[..., 3:]), xi[..., :3, None]], axis=-1)
     bottom = jnp.zeros(xi.shape[:-1] + (1, 4), dtype=top.dtype)
     return jnp.concatenate([top, bottom], axis=-2)
@@ -65,7 +75,7 @@ def hat(xi: ArrayLike) -> Array:
 
 def vee(X: ArrayLike) -> Array:
     """Twist ``(v, w)`` of an se(3) matrix: ``(..., 4, 4) -> (..., 6)``."""
-    X = jnp.asarray(X)
+    X = _shaped(X, (4, 4), "vee", "X")
     return jnp.concatenate([X[..., :3, 3], vee3(X[..., :3, :3])], axis=-1)
 
 
@@ -90,7 +100,7 @@ def _angle_coefficients(theta_sq: Array) -> tuple[Array, Array, Array]:
 
 def so3_exp(w: ArrayLike) -> Array:
     """Rotation matrix of a rotation vector (Rodrigues, Eq. 26): ``(..., 3) -> (..., 3, 3)``."""
-    w = jnp.asarray(w)
+    w = _shaped(w, (3,), "so3_exp", "w")
     a, b, _ = _angle_coefficients(jnp.sum(w * w, axis=-1))
     W = hat3(w)
     W2 = W @ W
@@ -100,7 +110,7 @@ def so3_exp(w: ArrayLike) -> Array:
 
 def so3_left_jacobian(w: ArrayLike) -> Array:
     """The matrix ``A`` of Eq. 26 (left Jacobian of SO(3)): ``(..., 3) -> (..., 3, 3)``."""
-    w = jnp.asarray(w)
+    w = _shaped(w, (3,), "so3_left_jacobian", "w")
     _, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
     W = hat3(w)
     eye = jnp.eye(3, dtype=W.dtype)
@@ -113,7 +123,7 @@ def rotation_to_quaternion(R: ArrayLike) -> Array:
     The branch with the largest pivot is selected before the square root, so every rotation,
     including those near pi, is converted to full precision. The sign is not normalised.
     """
-    m = jnp.asarray(R)
+    m = _shaped(R, (3, 3), "rotation_to_quaternion", "R")
     m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
     m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
     m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
@@ -135,7 +145,7 @@ def rotation_to_quaternion(R: ArrayLike) -> Array:
 
 def quaternion_to_rotation(q: ArrayLike) -> Array:
     """Rotation matrix of a unit quaternion ``(w, x, y, z)``: ``(..., 4) -> (..., 3, 3)``."""
-    q = jnp.asarray(q)
+    q = _shaped(q, (4,), "quaternion_to_rotation", "q")
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return jnp.stack(
         [
@@ -152,7 +162,7 @@ def quaternion_log(q: ArrayLike) -> Array:
 
     The result has norm in ``[0, pi]``; the double cover is resolved by flipping to ``w >= 0``.
     """
-    q = jnp.asarray(q)
+    q = _shaped(q, (4,), "quaternion_log", "q")
     q = jnp.where(q[..., :1] < 0, -q, q)
     w, v = q[..., 0], q[..., 1:]
     n_sq = jnp.sum(v * v, axis=-1)
@@ -170,12 +180,13 @@ def so3_log(R: ArrayLike) -> Array:
 
     Accurate for every rotation, near zero and near pi (see the module docstring).
     """
+    R = _shaped(R, (3, 3), "so3_log", "R")
     return quaternion_log(rotation_to_quaternion(R))
 
 
 def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
     """The matrix ``A*`` of Eq. 27, ``A^{-1}``: ``(..., 3) -> (..., 3, 3)``; finite up to pi."""
-    w = jnp.asarray(w)
+    w = _shaped(w, (3,), "so3_left_jacobian_inverse", "w")
     x = jnp.sum(w * w, axis=-1)
     small = x < _SMALL_ANGLE_SQ
     safe_x = jnp.where(small, jnp.ones_like(x), x)
@@ -191,8 +202,8 @@ def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
 
 def make_pose(R: ArrayLike, p: ArrayLike) -> Array:
     """Homogeneous matrix from ``R (..., 3, 3)`` and ``p (..., 3)`` (Eq. 22): ``(..., 4, 4)``."""
-    R = jnp.asarray(R)
-    p = jnp.asarray(p, dtype=R.dtype)
+    R = _shaped(R, (3, 3), "make_pose", "R")
+    p = _shaped(jnp.asarray(p, dtype=R.dtype), (3,), "make_pose", "p")
     R, p = jnp.broadcast_arrays(R, p[..., None, :])
     p = p[..., 0, :]
     top = jnp.concatenate([R, p[..., :, None]], axis=-1)
@@ -202,17 +213,17 @@ def make_pose(R: ArrayLike, p: ArrayLike) -> Array:
 
 def rotation(T: ArrayLike) -> Array:
     """Rotation block ``R`` of a pose: ``(..., 4, 4) -> (..., 3, 3)``."""
-    return jnp.asarray(T)[..., :3, :3]
+    return _shaped(T, (4, 4), "rotation", "T")[..., :3, :3]
 
 
 def translation(T: ArrayLike) -> Array:
     """Translation ``p`` of a pose (mm): ``(..., 4, 4) -> (..., 3)``."""
-    return jnp.asarray(T)[..., :3, 3]
+    return _shaped(T, (4, 4), "translation", "T")[..., :3, 3]
 
 
 def se3_exp(xi: ArrayLike) -> Array:
     """Pose of a twist ``(v, w)`` (Eq. 26): ``(..., 6) -> (..., 4, 4)``."""
-    xi = jnp.asarray(xi)
+    xi = _shaped(xi, (6,), "se3_exp", "xi")
     v, w = xi[..., :3], xi[..., 3:]
     a, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
     W = hat3(w)
@@ -225,7 +236,7 @@ def se3_exp(xi: ArrayLike) -> Array:
 
 def se3_log(T: ArrayLike) -> Array:
     """Twist ``(v, w)`` of a pose (Eq. 27, made robust near pi): ``(..., 4, 4) -> (..., 6)``."""
-    T = jnp.asarray(T)
+    T = _shaped(T, (4, 4), "se3_log", "T")
     w = so3_log(T[..., :3, :3])
     v = jnp.einsum("...ij,...j->...i", so3_left_jacobian_inverse(w), T[..., :3, 3])
     return jnp.concatenate([v, w], axis=-1)
@@ -233,7 +244,7 @@ def se3_log(T: ArrayLike) -> Array:
 
 def inverse(T: ArrayLike) -> Array:
     """Inverse pose ``[[R^T, -R^T p], [0, 1]]``: ``(..., 4, 4) -> (..., 4, 4)``."""
-    T = jnp.asarray(T)
+    T = _shaped(T, (4, 4), "inverse", "T")
     Rt = jnp.swapaxes(T[..., :3, :3], -1, -2)
     return make_pose(Rt, -jnp.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
 
@@ -250,7 +261,7 @@ def compose(*poses: ArrayLike) -> Array:
 
 def adjoint(T: ArrayLike) -> Array:
     """Adjoint ``[[R, hat(p) R], [0, R]]`` of a pose (Eq. 25): ``(..., 4, 4) -> (..., 6, 6)``."""
-    T = jnp.asarray(T)
+    T = _shaped(T, (4, 4), "adjoint", "T")
     R, p = T[..., :3, :3], T[..., :3, 3]
     top = jnp.concatenate([R, hat3(p) @ R], axis=-1)
     bottom = jnp.concatenate([jnp.zeros_like(R), R], axis=-1)
@@ -271,7 +282,13 @@ def to_xyz_rotvec(T: ArrayLike) -> tuple[Array, Array]:
 
 
 def rotation_angle(R: ArrayLike) -> Array:
-    """Angle of a rotation in ``[0, pi]`` (rad), accurate at both ends: ``(..., 3, 3) -> (...)``."""
-    q = rotation_to_quaternion(R)
-    n = jnp.linalg.norm(q[..., 1:], axis=-1)
+    """Angle of a rotation in ``[0, pi]`` (rad), accurate at both ends: ``(..., 3, 3) -> (...)``.
+
+    The angle is not differentiable at the identity (a cone, like ``|x|``); there its gradient
+    is taken as zero (double where) rather than NaN.
+    """
+    q = rotation_to_quaternion(_shaped(R, (3, 3), "rotation_angle", "R"))
+    n_sq = jnp.sum(q[..., 1:] * q[..., 1:], axis=-1)
+    positive = n_sq > 0
+    n = jnp.where(positive, jnp.sqrt(jnp.where(positive, n_sq, 1.0)), 0.0)
     return 2.0 * jnp.arctan2(n, jnp.abs(q[..., 0]))

@@ -422,3 +422,49 @@ def test_jacobians_at_identity_are_exact():
             assert np.all(np.isfinite(J6))
             np.testing.assert_allclose(J6[3:, :3, :3], dlog, atol=1e-8)
             np.testing.assert_allclose(J6[:3, :3, 3], np.eye(3), atol=1e-8)
+
+
+WRONG_SHAPES = [
+    (lie.hat3, (2,)),
+    (lie.vee3, (3, 2)),
+    (lie.hat, (5,)),
+    (lie.vee, (3, 4)),
+    (lie.so3_exp, (2,)),
+    (lie.so3_left_jacobian, (4,)),
+    (lie.so3_left_jacobian_inverse, (6,)),
+    (lie.rotation_to_quaternion, (4, 4)),
+    (lie.quaternion_to_rotation, (3,)),
+    (lie.quaternion_log, (3,)),
+    (lie.so3_log, (4, 4)),
+    (lie.se3_exp, (5,)),
+    (lie.se3_log, (3, 4)),
+    (lie.inverse, (3, 3)),
+    (lie.adjoint, (3, 4)),
+    (lie.rotation, (3, 3)),
+    (lie.translation, (3,)),
+    (lie.rotation_angle, (4, 4)),
+]
+
+
+@pytest.mark.parametrize(("fn", "shape"), WRONG_SHAPES, ids=[f.__name__ for f, _ in WRONG_SHAPES])
+def test_wrong_trailing_shapes_raise(fn, shape):
+    """A short trailing axis would be clamped silently by indexing under jit (so3_exp of a
+    2-vector used w[1] as its z component); the maps name the argument and the shape."""
+    with pytest.raises(ValueError, match=rf"lie\.{fn.__name__}: \w+ must have shape \(\.\.\."):
+        fn(jnp.zeros(shape))
+    with pytest.raises(ValueError, match="must have shape"):
+        jax.jit(fn)(jnp.zeros((7, *shape)))
+    with pytest.raises(ValueError, match=r"lie\.make_pose: p must have shape \(\.\.\., 3\)"):
+        lie.make_pose(jnp.eye(3), jnp.zeros(2))
+
+
+def test_rotation_angle_gradient_is_finite_at_identity():
+    """The angle is a cone at the identity: gradient zero there, not NaN; elsewhere it matches
+    jacrev and central differences."""
+    g = jax.grad(lie.rotation_angle)(jnp.eye(3))
+    np.testing.assert_array_equal(g, np.zeros((3, 3)))
+    w = jnp.array([0.1, -0.2, 0.3])
+    f = lambda w: lie.rotation_angle(lie.so3_exp(w))  # noqa: E731
+    np.testing.assert_allclose(jax.grad(f)(w), w / jnp.linalg.norm(w), rtol=1e-12)
+    np.testing.assert_allclose(jax.jacrev(f)(w), jax.jacfwd(f)(w), rtol=1e-12)
+    assert np.all(np.isfinite(jax.grad(f)(jnp.zeros(3))))
