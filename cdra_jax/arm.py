@@ -280,8 +280,19 @@ class Arm(eqx.Module):
         return out
 
     def with_frames(self, frames: ArrayLike) -> Arm:
-        """The same arm with other fixed transforms ``(K+1, 4, 4)``."""
-        return eqx.tree_at(lambda a: a.frames, self, jnp.asarray(frames))
+        """The same arm with other fixed transforms ``(K+1, 4, 4)``.
+
+        The shape is checked as in the constructor (``eqx.tree_at`` skips ``__check_init__``):
+        with too few frames, indexing under ``jit`` would clamp and reuse the last one.
+        """
+        frames = jnp.asarray(frames)
+        k = len(self.modules)
+        if tuple(frames.shape[-3:]) != (k + 1, 4, 4):
+            raise ValueError(
+                f"arm {self.name!r}: with_frames needs {k + 1} fixed frames of shape (4, 4) "
+                f"for {k} modules, got frames of shape {frames.shape}"
+            )
+        return eqx.tree_at(lambda a: a.frames, self, frames)
 
 
 def module_poses(arm: Arm, q: ArrayLike) -> Array:
@@ -336,7 +347,9 @@ def apply_frame_errors(arm: Arm, errors: ArrayLike) -> Arm:
     ``arm.param_names``) or ``(K+1, 6)``; ``F_j -> exp(hat(X_j)) F_j``.
     """
     X = jnp.asarray(errors)
-    if X.size != arm.n_params:
+    # Only the two documented layouts: a (6, K+1) array has the right size but, reshaped,
+    # pairs the wrong numbers.
+    if X.shape not in ((arm.n_params,), (len(arm.frame_names), 6)):
         raise ValueError(
             f"arm {arm.name!r} has {arm.n_params} error parameters, a (v, w) twist for each "
             f"frame of {arm.frame_names}: pass ({arm.n_params},) or "

@@ -278,3 +278,33 @@ def test_unknown_kind_and_bad_arm_raise(cdra):
         )
     with pytest.raises(ValueError, match=r"24 error parameters.*'base'.*shape \(23,\)"):
         apply_frame_errors(cdra, np.zeros(23))
+
+
+def test_with_frames_and_frame_errors_check_their_shapes(cdra):
+    """``with_frames`` skipped the constructor's check (3 frames for 3 modules was accepted and
+    ``tool_pose`` clamped the missing index to the last frame); ``apply_frame_errors`` accepted
+    any array of 24 numbers, so a transposed ``(6, 4)`` was silently paired wrongly."""
+    with pytest.raises(
+        ValueError, match=r"with_frames needs 4 fixed frames .* got frames of shape \(3, 4, 4\)"
+    ):
+        cdra.with_frames(jnp.stack([jnp.eye(4)] * 3))
+    assert cdra.with_frames(2 * cdra.frames).frames.shape == (4, 4, 4)
+    with pytest.raises(ValueError, match=r"pass \(24,\) or \(4, 6\), got errors of shape \(6, 4\)"):
+        apply_frame_errors(cdra, np.zeros((6, 4)))
+    X = np.arange(24.0) * 1e-3
+    np.testing.assert_array_equal(
+        apply_frame_errors(cdra, X).frames, apply_frame_errors(cdra, X.reshape(4, 6)).frames
+    )
+
+
+def test_measurements_select_with_no_rows(cdra):
+    """``select([])`` raised numpy's IndexError (an empty list is a float array)."""
+    from cdra_jax.io import Measurements
+
+    q = np.zeros((3, cdra.dof))
+    meas = Measurements.from_arrays(cdra, q)
+    assert meas.select([]).m == 0
+    assert meas.select(np.array([2, 0])).m == 2
+    assert meas.select(np.array([True, False, True])).m == 2
+    with pytest.raises(ValueError, match="integer indices or a boolean mask"):
+        meas.select(np.array([0.0, 1.0]))

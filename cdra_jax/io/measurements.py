@@ -184,7 +184,15 @@ class Measurements:
 
     def select(self, rows: Sequence[int] | np.ndarray) -> Measurements:
         """The measurements of the given rows (indices or a boolean mask), in that order."""
-        idx = np.arange(self.m)[np.asarray(rows)]
+        rows = np.asarray(rows)
+        if rows.size == 0:
+            rows = rows.astype(int)  # [] is a float array, which numpy refuses as an index
+        if rows.dtype != bool and not np.issubdtype(rows.dtype, np.integer):
+            raise ValueError(
+                f"Measurements.select: rows must be integer indices or a boolean mask, got "
+                f"dtype {rows.dtype}"
+            )
+        idx = np.arange(self.m)[rows]
         return dataclasses.replace(
             self,
             pose_ids=tuple(self.pose_ids[i] for i in idx),
