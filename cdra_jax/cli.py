@@ -17,7 +17,9 @@ sets ``func`` (a callable ``args -> int``) with ``set_defaults``, and append it 
 :data:`SUBCOMMANDS`; for a module ``cdra_jax.<module>`` that provides ``register(subparsers)``
 and ``run(args) -> int``, append ``_external("<module>")``. Import JAX-heavy code inside the run
 function, not at the top of this file. ``main`` enables ``jax_enable_x64`` before running any
-subcommand and turns ``ValueError`` and ``OSError`` into the one-line error.
+subcommand and turns ``ValueError``, ``OSError`` and a failed run-time check inside compiled
+code (``equinox.EquinoxRuntimeError``, e.g. a model whose cables hold no pose) into the one-line
+error.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+from . import cli_common
 
 Registrar = Callable[[Any], None]
 """``register(subparsers)``: adds one subcommand parser with ``set_defaults(func=run)``."""
@@ -85,16 +89,46 @@ def _load_arm(model: str | None):
 
 
 def _check_output(path: str | None, force: bool, flag: str) -> None:
-    """Fail before any work when an output exists (no ``--force``) or its folder is missing."""
-    if path is None:
-        return
-    p = Path(path)
-    if p.is_dir():
-        raise IsADirectoryError(f"{flag} {p}: is a folder, expected a file name")
-    if p.exists() and not force:
-        raise FileExistsError(f"{p}: file exists; refusing to overwrite it (pass --force)")
-    if not (p.parent if str(p.parent) else Path(".")).is_dir():
-        raise FileNotFoundError(f"{flag} {p}: folder {p.parent} does not exist")
+    """Fail before any work when an output exists (no ``--force``) or its folder is missing
+    (:func:`cdra_jax.cli_common.check_output`)."""
+    cli_common.check_output(path, force, flag)
+
+
+FRAME_ERROR_PLAUSIBLE_MM = 50.0
+"""Identified frame errors beyond this translation (norm of the twist's v, mm) ..."""
+FRAME_ERROR_PLAUSIBLE_RAD = 0.5
+"""... or this rotation (norm of w, rad) make ``calibrate`` warn: a calibration corrects small
+errors of a nominal model, so such a result usually comes from gross errors in the data (a typo,
+swapped rows, wrong units) or too few poses to outvote them."""
+
+
+def implausible_frame_errors_warning(result: dict) -> str | None:
+    """The warning for identified frame errors beyond :data:`FRAME_ERROR_PLAUSIBLE_MM` or
+    :data:`FRAME_ERROR_PLAUSIBLE_RAD` in a result dict, or None."""
+    import math
+
+    large = []
+    for name, frame in result["frames"].items():
+        t = frame["error_twist"]
+        v = math.sqrt(sum((t[c] or 0.0) ** 2 for c in ("vx", "vy", "vz")))
+        w = math.sqrt(sum((t[c] or 0.0) ** 2 for c in ("wx", "wy", "wz")))
+        if v > FRAME_ERROR_PLAUSIBLE_MM or w > FRAME_ERROR_PLAUSIBLE_RAD:
+            large.append(f"{name} (|v| = {v:.4g} mm, |w| = {w:.3g} rad)")
+    if not large:
+        return None
+    unidentifiable = (result.get("identifiability") or {}).get("unidentifiable") or []
+    return (
+        f"implausibly large identified frame errors: {', '.join(large)}, above "
+        f"{FRAME_ERROR_PLAUSIBLE_MM:g} mm or {FRAME_ERROR_PLAUSIBLE_RAD:g} rad; a calibration "
+        "corrects small errors of the nominal model: check the data for gross errors (typos, "
+        "swapped rows, wrong units) and measure more poses"
+        + (
+            " (part of the error may lie along the unidentifiable directions listed in the "
+            "summary, which the tool poses do not determine)"
+            if unidentifiable
+            else ""
+        )
+    )
 
 
 def _sha256(path: str) -> str:
@@ -206,6 +240,9 @@ def _run_calibrate(args: argparse.Namespace) -> int:
             "--reject-outliers needs a robust loss to flag the outliers: add --loss huber or "
             "--loss cauchy"
         )
+    cli_common.check_distinct_files(
+        [("--out", args.out)], [("--data", args.data), ("--model", args.model)]
+    )
     _check_output(args.out, args.force, "--out")
 
     from .calibration import calibrate_lm, calibrate_paper, calibrate_robust
@@ -273,6 +310,9 @@ def _run_calibrate(args: argparse.Namespace) -> int:
             *([cond.warning] if cond.warning else []),
         ],
     )
+    implausible = implausible_frame_errors_warning(result)
+    if implausible is not None:
+        result["warnings"].append(implausible)
     shown += [w for w in result["warnings"] if w not in shown and w not in report.warnings]
     ident = report.summary()
     if noise is not None:
@@ -447,8 +487,7 @@ def _register_simulate(subparsers) -> None:
         "--cable-noise",
         metavar="MM",
         type=float,
-        default=0.0,
-        help="std of Gaussian noise on each cable length, with --cables (default 0)",
+        help="std of Gaussian noise on each cable length; needs --cables (default 0)",
     )
     p.add_argument("--out", metavar="D", required=True, help="measurement CSV file to write")
     p.add_argument("--truth", metavar="T.json", help="also write the preset errors as JSON")
@@ -462,13 +501,19 @@ def _run_simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--poses must be at least 1, got {args.poses}")
     if args.errors != "random" and (args.d_v is not None or args.d_w is not None):
         raise ValueError("--d-v/--d-w set the range of random errors; they need --errors random")
-    d_v = 1.0 if args.d_v is None else args.d_v
-    d_w = 0.05 if args.d_w is None else args.d_w
-    for flag, v in (("--d-v", d_v), ("--d-w", d_w)):
-        if not 0 <= v < float("inf"):
-            raise ValueError(f"{flag} must be a non-negative number, got {v}")
-    if args.truth is not None and Path(args.truth).resolve() == Path(args.out).resolve():
-        raise ValueError("--truth and --out name the same file")
+    d_v = cli_common.check_non_negative("--d-v", 1.0 if args.d_v is None else args.d_v)
+    d_w = cli_common.check_non_negative("--d-w", 0.05 if args.d_w is None else args.d_w)
+    cli_common.check_seed(args.seed)
+    if args.cable_noise is not None and not args.cables:
+        raise ValueError("--cable-noise needs --cables (noise on the written cable lengths)")
+    cable_noise = cli_common.check_non_negative(
+        "--cable-noise", 0.0 if args.cable_noise is None else args.cable_noise
+    )
+    errors_file = None if args.errors in ("random", "zero") else args.errors
+    cli_common.check_distinct_files(
+        [("--out", args.out), ("--truth", args.truth)],
+        [("--model", args.model), ("--errors", errors_file)],
+    )
     _check_output(args.out, args.force, "--out")
     _check_output(args.truth, args.force, "--truth")
 
@@ -519,18 +564,16 @@ def _run_simulate(args: argparse.Namespace) -> int:
     if args.cables:
         from .modules.cable_data import simulate_cable_lengths
 
-        if not 0 <= args.cable_noise < float("inf"):
-            raise ValueError(f"--cable-noise must be a non-negative number, got {args.cable_noise}")
         cable_lengths = {
             k: np.asarray(v)
             for k, v in simulate_cable_lengths(
-                jax.random.fold_in(jax.random.PRNGKey(args.seed), 7), arm, q, args.cable_noise
+                jax.random.fold_in(jax.random.PRNGKey(args.seed), 7), arm, q, cable_noise
             ).items()
         }
         if not cable_lengths:
             raise ValueError(f"--cables: no module of model {arm.name!r} has cables")
         comments.append(
-            f"cable lengths (mm) for {', '.join(cable_lengths)}; noise std {args.cable_noise!r} mm"
+            f"cable lengths (mm) for {', '.join(cable_lengths)}; noise std {cable_noise!r} mm"
         )
     meas = Measurements.from_arrays(
         arm, q, measured, comments=comments, cable_lengths=cable_lengths
@@ -619,13 +662,6 @@ def _version_text() -> str:
     return f"cdra-jax {package_version()}"
 
 
-def _one_line(e: BaseException) -> str:
-    text = str(e) or type(e).__name__
-    if isinstance(e, OSError) and e.filename is not None and e.strerror:
-        text = f"{e.filename}: {e.strerror}"  # not "[Errno 2] No such file ...: 'name'"
-    return " ".join(text.split())
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``cdra-jax`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
     import jax
@@ -638,8 +674,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(e.code or 0) if not isinstance(e.code, str) else EXIT_USAGE
     try:
         return int(args.func(args) or 0)
-    except (ValueError, OSError) as e:
-        print(f"error: {_one_line(e)}", file=sys.stderr)
+    except Exception as e:  # user errors (cli_common.user_error_line) only; the rest raises
+        line = cli_common.user_error_line(e)
+        if line is None:
+            raise
+        print(line, file=sys.stderr)
         return EXIT_ERROR
 
 

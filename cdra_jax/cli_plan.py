@@ -25,7 +25,13 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from .cli_common import load_arm, standalone_main
+from .cli_common import (
+    check_distinct_files,
+    check_output,
+    check_seed,
+    load_arm,
+    standalone_main,
+)
 from .io.files import write_text_atomic
 from .pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE
 
@@ -126,9 +132,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--count must be at least 4 (the paper's minimum), got {args.count}")
     if args.pool < args.count:
         raise ValueError(f"--pool ({args.pool}) must be at least --count ({args.count})")
+    check_seed(args.seed)
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise FileExistsError(f"{out}: file exists; pass --force to replace it")
+    check_distinct_files([("--out", out)], [("--model", args.model)])
+    check_output(out, args.force, "--out")
     arm, label = load_arm(args.model)
     sel = select_poses(
         arm,
@@ -141,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     # Expected accuracy over the pool (a sample of the workspace), selected vs random poses.
     eval_q = sel.pool
     exp_sel = predicted_pose_covariance(arm, sel.states, noise, eval_q)
-    rng = np.random.default_rng(args.seed)
+    rng = np.random.default_rng(args.seed % 2**64)  # numpy takes no negative seeds
     rand = [
         float(
             predicted_pose_covariance(

@@ -22,7 +22,15 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from .cli_common import load_arm, standalone_main
+from .cli_common import (
+    check_at_least,
+    check_distinct_files,
+    check_non_negative,
+    check_output,
+    check_seed,
+    load_arm,
+    standalone_main,
+)
 
 
 def _floats(text: str) -> list[float]:
@@ -115,12 +123,25 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``sweep``; returns the exit code (0)."""
+    # Every check of the arguments and the output files before any work.
+    for flag, n in (("--trials", args.trials), ("--verify", args.verify), ("--chunk", args.chunk)):
+        check_at_least(flag, n)
+    if args.cpu_devices is not None:
+        check_at_least("--cpu-devices", args.cpu_devices)
+    check_non_negative("--d-v", args.d_v)
+    check_non_negative("--d-w", args.d_w)
+    check_seed(args.seed)
+    out = Path(args.out)
+    if out.suffix.lower() not in (".csv", ".parquet"):
+        raise ValueError(f"{out}: --out must end in .csv or .parquet")
+    check_distinct_files([("--out", out), ("--plot", args.plot)], [("--model", args.model)])
+    check_output(out, args.force, "--out")
+    check_output(args.plot, args.force, "--plot")
+
     import jax
 
     from .parallel import use_cpu_devices
 
-    if args.cpu_devices is not None and args.cpu_devices < 1:
-        raise ValueError(f"--cpu-devices must be at least 1, got {args.cpu_devices}")
     # Before JAX starts: every core as a CPU device (no effect on a GPU host's devices). Called
     # from a process where JAX already runs (e.g. a notebook), the default keeps its devices.
     if args.cpu_devices is not None:
@@ -134,14 +155,6 @@ def run(args: argparse.Namespace) -> int:
     from .sweeps import parse_noise_levels, run_sweep
 
     levels = parse_noise_levels(args.noise_pos, args.noise_rot)
-    out = Path(args.out)
-    if out.suffix.lower() not in (".csv", ".parquet"):
-        raise ValueError(f"{out}: --out must end in .csv or .parquet")
-    for path in (out, Path(args.plot) if args.plot else None):
-        if path is not None and path.exists() and not args.force:
-            raise FileExistsError(f"{path}: file exists; pass --force to replace it")
-    if args.plot and Path(args.plot).resolve() == out.resolve():
-        raise ValueError("--plot and --out name the same file")
     arm, label = load_arm(args.model)
     table = run_sweep(
         arm,

@@ -183,11 +183,14 @@ def run(args: argparse.Namespace) -> int:
 
     jax.config.update("jax_enable_x64", True)
     t_start, c_start = time.perf_counter(), time.process_time()
-    try:
+    from .cli_common import check_seed
+
+    try:  # file problems: one error line and exit 1, as every command (before any work)
+        check_seed(args.seed)
         out = _output_folder(args.out, args.force)
-    except FileExistsError as e:
-        print(f"cdra-jax demo: {e}", file=sys.stderr)
-        return 2
+    except (ValueError, OSError) as e:
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 1
 
     from . import plots, reproduction
     from .io import default_arm, save_figure_atomic, write_text_atomic

@@ -47,7 +47,9 @@ import csv
 import functools
 import importlib.util
 import math
+import numbers
 import os
+import re
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -234,7 +236,6 @@ class SweepTable:
                 cols = [_format_column(c, self.columns[c][block]) for c in COLUMNS]
                 w.writerows(zip(*cols, strict=True))
 
-        _prepare_folder(path)
         write_file_atomic(path, write, force=force)
         return path
 
@@ -251,7 +252,6 @@ class SweepTable:
         table = pa.table({c: self.columns[c] for c in COLUMNS})
         table = table.replace_schema_metadata({k: str(v) for k, v in self.meta.items()})
         path = Path(path)
-        _prepare_folder(path)
         write_file_atomic(path, lambda f: pq.write_table(table, f), force=force, binary=True)
         return path
 
@@ -273,12 +273,6 @@ def _format_column(name: str, values: np.ndarray) -> list[str]:
     if name in _INT_COLUMNS:
         return [str(int(v)) for v in values]
     return [repr(float(v)) for v in values]
-
-
-def _prepare_folder(path: Path) -> None:
-    """Create the table's folder (sweeps write into new result folders); the write itself goes
-    through :func:`cdra_jax.io.files.write_file_atomic` (atomic, no overwrite without force)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
 
 
 def read_sweep(path: str | os.PathLike) -> SweepTable:
@@ -333,6 +327,26 @@ def read_sweep(path: str | os.PathLike) -> SweepTable:
     return SweepTable(cols, meta)
 
 
+_DECIMAL = re.compile(
+    r"\s*[+-]?(?:(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?|nan|inf|infinity)\s*",
+    re.ASCII | re.IGNORECASE,
+)
+
+
+def _read_float(v: str) -> float:
+    """A decimal number (or nan/inf, as written for failed trials); not Python's other float
+    spellings such as ``1_0``."""
+    if not _DECIMAL.fullmatch(v):
+        raise ValueError(v)
+    return float(v)
+
+
+def _read_int(v: str) -> int:
+    if not re.fullmatch(r"\s*[+-]?\d+\s*", v, re.ASCII):
+        raise ValueError(v)
+    return int(v)
+
+
 def _read_bool(v: str) -> bool:
     if v not in ("true", "false"):
         raise ValueError(v)
@@ -349,9 +363,9 @@ def _typed_block(path, first_line: int, rows: list[list[str]], idx: dict[str, in
         elif c in _BOOL_COLUMNS:
             conv, dtype, kind = _read_bool, bool, "true/false"
         elif c in _INT_COLUMNS:
-            conv, dtype, kind = int, np.int64, "an integer"
+            conv, dtype, kind = _read_int, np.int64, "an integer"
         else:
-            conv, dtype, kind = float, float, "a number"
+            conv, dtype, kind = _read_float, float, "a number"
         values = []
         for j, r in enumerate(rows):
             try:
@@ -484,6 +498,40 @@ def _cells(levels, pose_counts, solvers, trials) -> list[_Cell]:
     return cells
 
 
+def _list(name: str, values) -> list:
+    if isinstance(values, str) or not isinstance(values, Iterable):
+        raise ValueError(f"{name} must be a list, got {values!r}")
+    return list(values)
+
+
+def _integer(name: str, v, what: str = "an integer") -> int:
+    """``v`` as an int when it is an integer (not a bool, not a float), else a ValueError."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+        raise ValueError(f"{name} must be {what}, got {v!r}")
+    return int(v)
+
+
+def _level_pairs(noise_levels) -> list[tuple[float, float]]:
+    """``(position_mm, rotation_rad)`` of each noise level; a ValueError naming the argument
+    for anything else."""
+    what = "noise_levels must be a non-empty list of (position_mm, rotation_rad) pairs"
+    if isinstance(noise_levels, str | NoiseModel) or not isinstance(noise_levels, Iterable):
+        raise ValueError(f"{what}, got {noise_levels!r}")
+    pairs = []
+    for i, lv in enumerate(noise_levels):
+        if isinstance(lv, NoiseModel):
+            pairs.append((float(lv.position_mm), float(lv.rotation_rad)))
+            continue
+        ok = isinstance(lv, Sequence | np.ndarray) and not isinstance(lv, str) and len(lv) == 2
+        if ok and all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in lv):
+            pairs.append((float(lv[0]), float(lv[1])))
+        else:
+            raise ValueError(f"{what} (or NoiseModels); entry {i} is {lv!r}")
+    if not pairs:
+        raise ValueError(f"{what}, got none")
+    return pairs
+
+
 def run_sweep(
     arm: Arm,
     noise_levels: Iterable[tuple[float, float] | NoiseModel],
@@ -529,20 +577,18 @@ def run_sweep(
     Returns:
         A :class:`SweepTable` with ``len(levels) * len(pose_counts) * len(solvers) * trials``
         rows, ordered by m, solver, noise level, trial.
+
+    Raises:
+        ValueError: naming the argument: ``noise_levels`` not a non-empty list of pairs, a
+            pose count, ``trials``, ``chunk``, ``m_verify`` or ``seed`` not an integer (a float
+            or a bool is refused, never truncated) or out of range, ``d_v``/``d_w`` not a
+            non-negative number, an unknown solver.
     """
-    levels = parse_noise_levels(
-        *zip(
-            *[
-                (float(lv.position_mm), float(lv.rotation_rad))
-                if isinstance(lv, NoiseModel)
-                else tuple(lv)
-                for lv in noise_levels
-            ],
-            strict=True,
-        )
-    )
-    pose_counts = [int(m) for m in pose_counts]
-    solvers = list(solvers)
+    levels = parse_noise_levels(*zip(*_level_pairs(noise_levels), strict=True))
+    pose_counts = [
+        _integer("pose_counts", m, "integers") for m in _list("pose_counts", pose_counts)
+    ]
+    solvers = _list("solvers", solvers)
     for s in solvers:
         if s not in SOLVERS:
             raise ValueError(f"unknown solver {s!r}; solvers: {SOLVERS}")
@@ -551,8 +597,14 @@ def run_sweep(
     for m in pose_counts:
         if m < MIN_POSES:
             raise ValueError(f"pose count {m} is below the paper's minimum of {MIN_POSES}")
-    if trials < 1 or chunk < 1 or m_verify < 1:
-        raise ValueError(f"trials ({trials}), chunk ({chunk}), m_verify ({m_verify}) must be >= 1")
+    for name, v in (("trials", trials), ("chunk", chunk), ("m_verify", m_verify)):
+        if _integer(name, v) < 1:
+            raise ValueError(f"{name} must be >= 1, got {v}")
+    if not -(2**63) <= _integer("seed", seed) < 2**63:
+        raise ValueError(f"seed must be an integer in [-2^63, 2^63), got {seed}")
+    for name, x in (("d_v", d_v), ("d_w", d_w)):
+        if not isinstance(x, numbers.Real) or isinstance(x, bool) or not 0 <= x < math.inf:
+            raise ValueError(f"{name} must be a non-negative number, got {x!r}")
     devices = list(jax.devices() if devices is None else devices)
     check_devices(devices)
     n_dev = len(devices)

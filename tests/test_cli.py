@@ -309,9 +309,11 @@ def test_demo_entry_point_dispatches_to_the_demo(tmp_path, monkeypatch, capsys):
     taken = tmp_path / "taken"
     taken.mkdir()
     (taken / "keep.txt").write_text("keep")
-    assert cli.main(["demo", "--out", str(taken)]) == 2
-    assert "--force" in capsys.readouterr().err
+    assert cli.main(["demo", "--out", str(taken)]) == cli.EXIT_ERROR  # a file problem: exit 1
+    assert "--force" in _one_error_line(capsys)
     assert (taken / "keep.txt").read_text() == "keep"
+    assert cli.main(["demo", "--out", str(taken / "keep.txt")]) == cli.EXIT_ERROR
+    assert "keep.txt: exists and is not a folder" in _one_error_line(capsys)
     # The parsed options arrive at demo.run unchanged.
     seen = []
     monkeypatch.setattr(demo, "run", lambda args: seen.append(args) or 0)
@@ -353,3 +355,178 @@ def test_simulate_cables_then_calibrate(tmp_path, capsys):
     for name in ("base", "tool"):
         got = r["frames"][name]["error_twist"]
         assert max(abs(got[c] - preset[name][c]) for c in COMPONENTS) < 1e-8
+
+
+# --------------------------------------------------------------------------- QA defects
+
+TINY_MODEL = """name = "one"
+[[frames]]
+name = "a"
+xyz = [0.0, 0.0, 0.0]
+rotvec = [0.0, 0.0, 0.0]
+[[frames]]
+name = "b"
+xyz = [0.0, 0.0, 100.0]
+rotvec = [0.0, 0.0, 0.0]
+[[modules]]
+name = "hinge"
+kind = "revolute"
+axis = [0.0, 1.0, 0.0]
+limits = [[-1.0, 1.0]]
+cables = [{ base = [30.0, 0.0, -70.0], platform = [15.0, 0.0, 30.0] }]
+"""
+"""One revolute module held by one cable: no state has tension closure (it needs 2)."""
+
+HUGE = "99999999999999999999999"
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["simulate", "--model", "{model}", "--poses", "4", "--out", "{tmp}/s.csv"],
+        ["plan-poses", "--model", "{model}", "--count", "4", "--pool", "8", "--out", "{tmp}/p.csv"],
+    ],
+    ids=["simulate", "plan-poses"],
+)
+def test_model_whose_cables_hold_no_pose_gives_one_error_line(tmp_path, capsys, argv):
+    model = tmp_path / "one.toml"
+    model.write_text(TINY_MODEL)
+    assert _run(*(a.format(model=model, tmp=tmp_path) for a in argv)) == cli.EXIT_ERROR
+    line = _one_error_line(capsys)
+    assert "tension closure" in line and "the model's cables cannot hold" in line, line
+    assert "EQX_ON_ERROR" not in line and not list(tmp_path.glob("*.csv"))
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["simulate", "--poses", "4", "--seed", HUGE, "--out", "{tmp}/s.csv"], "--seed must be"),
+        (["simulate", "--poses", "4", "--seed", "-" + HUGE, "--out", "{tmp}/s.csv"], "--seed"),
+        (["plan-poses", "--count", "4", "--seed", HUGE, "--out", "{tmp}/p.csv"], "--seed must"),
+        (["demo", "--seed", HUGE, "--out", "{tmp}/demo"], "--seed must be"),
+        (
+            ["simulate", "--poses", "4", "--cable-noise", "-1", "--out", "{tmp}/s.csv"],
+            "--cable-noise needs --cables",
+        ),
+        (
+            ["simulate", "--poses", "4", "--cable-noise", "0.1", "--out", "{tmp}/s.csv"],
+            "--cable-noise needs --cables",
+        ),
+        (
+            ["simulate", "--poses", "4", "--cables", "--cable-noise", "-1", "--out", "{tmp}/s.csv"],
+            "--cable-noise must be a non-negative number, got -1.0",
+        ),
+        (
+            ["simulate", "--poses", "4", "--cables", "--cable-noise", "nan", "--out", "{tmp}/s"],
+            "--cable-noise must be a non-negative number, got nan",
+        ),
+        (
+            ["simulate", "--poses", "4", "--errors", "{tmp}/big.json", "--out", "{tmp}/s.csv"],
+            "big.json: frames.base.vx: expected a finite number",
+        ),
+        (["plan-poses", "--count", "5", "--out", "{tmp}"], "is a folder, expected a file name"),
+        (
+            ["plan-poses", "--count", "5", "--out", "{tmp}", "--force"],
+            "is a folder, expected a file name",
+        ),
+        (["plan-poses", "--count", "5", "--out", "{tmp}/no/p.csv"], "folder {tmp}/no does not"),
+    ],
+    ids=[
+        "simulate huge seed",
+        "simulate huge negative seed",
+        "plan-poses huge seed",
+        "demo huge seed",
+        "cable noise without cables",
+        "positive cable noise without cables",
+        "negative cable noise",
+        "nan cable noise",
+        "huge integer in errors file",
+        "plan-poses out is a folder",
+        "plan-poses out is a folder, force",
+        "plan-poses missing folder",
+    ],
+)
+def test_bad_arguments_are_refused_before_any_work(tmp_path, capsys, argv, expected):
+    (tmp_path / "big.json").write_text('{"frames": {"base": {"vx": 1' + "0" * 400 + "}}}")
+    before = sorted(tmp_path.iterdir())
+    assert _run(*(a.format(tmp=tmp_path) for a in argv)) == cli.EXIT_ERROR
+    assert expected.format(tmp=tmp_path) in _one_error_line(capsys)
+    assert sorted(tmp_path.iterdir()) == before  # nothing written
+
+
+def test_seed_at_the_ends_of_the_accepted_range_works(tmp_path, capsys):
+    for seed in (-(2**63), 2**63 - 1):
+        assert (
+            _run("simulate", "--poses", 4, "--seed", seed, "--out", tmp_path / f"{seed}.csv") == 0
+        )
+    assert _run("simulate", "--poses", 4, "--seed", 2**63, "--out", tmp_path / "x.csv") == 1
+    assert "--seed must be an integer in [-2^63, 2^63), got 9223372036854775808" in (
+        _one_error_line(capsys)
+    )
+
+
+def test_an_output_naming_an_input_is_refused(sim, tmp_path, capsys):
+    data = tmp_path / "d.csv"
+    data.write_bytes((sim / "poses.csv").read_bytes())
+    (tmp_path / "link.csv").symlink_to(data)
+    errors = tmp_path / "e.json"
+    errors.write_text('{"frames": {"base": [0, 0, 0, 0, 0, 0.01]}}')
+    model = tmp_path / "m.toml"
+    model.write_text(dumps_model(default_arm()))
+    cases = [
+        (["calibrate", "--data", data, "--out", data], "--out and --data name the same file"),
+        (["calibrate", "--data", data, "--out", tmp_path / "link.csv"], "--out and --data"),
+        (["calibrate", "--data", data, "--out", f"{tmp_path}/../{tmp_path.name}/d.csv"], "--data"),
+        (
+            ["calibrate", "--model", model, "--data", data, "--out", model],
+            "--out and --model name the same file",
+        ),
+        (["diagnose", "--data", data, "--out", data], "--out and --data name the same file"),
+        (
+            [
+                "simulate",
+                "--poses",
+                4,
+                "--errors",
+                errors,
+                "--out",
+                "{tmp}/s.csv",
+                "--truth",
+                errors,
+            ],
+            "--truth and --errors name the same file",
+        ),
+        (["simulate", "--poses", 4, "--model", model, "--out", model], "--out and --model"),
+        (["plan-poses", "--count", 4, "--model", model, "--out", model], "--out and --model"),
+    ]
+    saved = {p: p.read_bytes() for p in (data, errors, model)}
+    for argv, expected in cases:
+        argv = [str(a).format(tmp=tmp_path) for a in argv] + ["--force"]
+        assert _run(*argv) == cli.EXIT_ERROR, argv
+        assert expected in _one_error_line(capsys), argv
+        assert {p: p.read_bytes() for p in saved} == saved, argv
+
+
+def test_implausibly_large_identified_errors_warn(tmp_path, capsys):
+    # A model 100 mm off at the base: the calibration identifies it, and says it is implausible.
+    errors = tmp_path / "e.json"
+    errors.write_text('{"frames": {"base": {"vx": 100.0}}}')
+    data, out = tmp_path / "d.csv", tmp_path / "r.json"
+    assert _run("simulate", "--poses", M, "--errors", errors, "--out", data) == 0
+    capsys.readouterr()
+    assert _run("calibrate", "--data", data, "--out", out) == 0  # exit code unchanged
+    err = capsys.readouterr().err
+    r = json.loads(out.read_text())
+    assert abs(r["frames"]["base"]["error_twist"]["vx"] - 100.0) < 1e-6
+    (w,) = [w for w in r["warnings"] if w.startswith("implausibly large identified frame errors")]
+    assert "base (|v| = 100 mm" in w and "above 50 mm or 0.5 rad" in w and "gross errors" in w
+    assert f"warning: {w}" in err.splitlines()
+
+
+def test_plausibility_thresholds_of_identified_errors():
+    zero = dict.fromkeys(COMPONENTS, 0.0)
+    frames = {"base": {"error_twist": dict(zero, vx=30.0, vy=40.0)}}  # |v| = 50: not above
+    assert cli.implausible_frame_errors_warning({"frames": frames}) is None
+    frames["tool"] = {"error_twist": dict(zero, wz=-0.51, vx=None)}  # unidentified -> 0
+    w = cli.implausible_frame_errors_warning({"frames": frames})
+    assert w is not None and "tool (|v| = 0 mm, |w| = 0.51 rad)" in w and "base" not in w

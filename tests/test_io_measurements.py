@@ -351,6 +351,20 @@ def test_malformed_file_errors_name_file_line_and_column(cdra, good_text, case):
         assert part in msg, (case, msg)
 
 
+@pytest.mark.parametrize("cell", ["1_0", "57_0.57", "1e1_0", "\u0661\u0662", "\uff11.5"])
+def test_cells_python_float_accepts_but_are_not_decimal_numbers_are_refused(cdra, good_text, cell):
+    # float() reads '1_0' as 10, '57_0.57' as 570.57 and Arabic-Indic or full-width digits.
+    with pytest.raises(MeasurementFileError) as info:
+        loads_measurements(_cell(good_text, 5, "elbow.q", cell), cdra, source="data.csv")
+    assert str(info.value) == f"data.csv, line 5, column 'elbow.q': not a number: {cell!r}"
+
+
+def test_decimal_spellings_are_still_read(cdra, good_text):
+    for cell, value in [(" -1.5 ", -1.5), ("+.5", 0.5), ("2.", 2.0), ("1E-3", 1e-3)]:
+        meas = loads_measurements(_cell(good_text, 5, "elbow.q", cell), cdra)
+        assert meas.q[1, 3] == value, cell
+
+
 def test_non_unit_quaternion_error_says_by_how_much(cdra):
     q, xyz, _, quat = _rows(m=4, seed=4)
     quat[1] *= 1.001

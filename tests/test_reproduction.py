@@ -281,7 +281,7 @@ def test_demo_output_folder(tmp_path, monkeypatch):
     with pytest.raises(FileExistsError, match="--force"):
         demo._output_folder("cdra_demo_out", False)
     assert demo._output_folder("cdra_demo_out", True).name == "cdra_demo_out"
-    assert demo.main(["--out", "cdra_demo_out"]) == 2  # refuses before computing anything
+    assert demo.main(["--out", "cdra_demo_out"]) == 1  # refuses before computing anything
     assert (tmp_path / "cdra_demo_out" / "x.txt").read_text() == "keep"
 
 

@@ -216,6 +216,16 @@ def test_csv_round_trip_and_errors(table, tmp_path):
     bad.write_text("\n".join(lines) + "\n")
     with pytest.raises(ValueError, match=rf"line {header_at + 3}: column 'dp_fit'"):
         read_sweep(bad)
+    for column, cell in (("dp_fit", "1_0"), ("m", "1_0"), ("m", "5.0")):  # float()/int() take 1_0
+        cells[COLUMNS.index("dp_fit")] = "0.5"
+        cells[COLUMNS.index(column)] = cell
+        lines[header_at + 2] = ",".join(cells)
+        bad.write_text("\n".join(lines) + "\n")
+        with pytest.raises(ValueError, match=rf"line {header_at + 3}: column '{column}'"):
+            read_sweep(bad)
+    with pytest.raises(FileNotFoundError, match="folder .*nodir does not exist"):
+        table.save(tmp_path / "nodir" / "t.csv")  # the API creates no folders either
+    assert not (tmp_path / "nodir").exists()
     with pytest.raises(ValueError, match="unknown table format"):
         table.save(tmp_path / "t.xlsx")
     if importlib.util.find_spec("pyarrow") is None:
@@ -263,6 +273,90 @@ def test_bad_sweeps(cdra):
         run_sweep(cdra, LEVELS, [3], ["paper"], trials=1)
     with pytest.raises(ValueError, match="unknown solver"):
         run_sweep(cdra, LEVELS, [5], ["newton"], trials=1)
+
+
+PAIRS = "noise_levels must be a non-empty list of \\(position_mm, rotation_rad\\) pairs"
+
+
+@pytest.mark.parametrize(
+    ("args", "kwargs", "expected"),
+    [
+        (([], [5], ["paper"], 2), {}, PAIRS),
+        (([(0.08, 1e-3, 1)], [5], ["paper"], 2), {}, PAIRS + ".*entry 0 is \\(0.08, 0.001, 1\\)"),
+        (([0.08], [5], ["paper"], 2), {}, PAIRS + ".*entry 0 is 0.08"),
+        ((0.08, [5], ["paper"], 2), {}, PAIRS),
+        (([(0.08, "1e-3")], [5], ["paper"], 2), {}, PAIRS),
+        ((LEVELS, [5], ["paper"], 2.5), {}, "trials must be an integer, got 2.5"),
+        ((LEVELS, [5], ["paper"], True), {}, "trials must be an integer, got True"),
+        ((LEVELS, [4.7], ["paper"], 2), {}, "pose_counts must be integers, got 4.7"),
+        ((LEVELS, [True], ["paper"], 2), {}, "pose_counts must be integers, got True"),
+        ((LEVELS, [5], "paper", 2), {}, "solvers must be a list"),
+        ((LEVELS, [5], ["paper"], 2), {"m_verify": 10.0}, "m_verify must be an integer"),
+        ((LEVELS, [5], ["paper"], 2), {"chunk": 0}, "chunk must be >= 1, got 0"),
+        ((LEVELS, [5], ["paper"], 2), {"seed": 2**64}, "seed must be an integer in"),
+        ((LEVELS, [5], ["paper"], 2), {"d_v": float("nan")}, "d_v must be a non-negative number"),
+        ((LEVELS, [5], ["paper"], 2), {"d_w": -0.1}, "d_w must be a non-negative number"),
+    ],
+)
+def test_run_sweep_argument_errors_name_the_argument(cdra, args, kwargs, expected):
+    with pytest.raises(ValueError, match=expected):
+        run_sweep(cdra, *args, progress=False, **kwargs)
+
+
+def test_run_sweep_accepts_numpy_integers_and_noise_models(cdra, table):
+    levels = [NoiseModel(*LEVELS[0]), np.array(LEVELS[1])]
+    kw = dict(CELL, seed=np.int64(7), chunk=np.int64(4))
+    t = run_sweep(cdra, levels, np.array([5]), trials=np.int64(1), **kw)
+    assert len(t) == 2 and t.meta["trials"] == "1" and t.meta["seed"] == "7"
+    first = table.select(table["trial"] == 0)  # the same trials as the fixture's trial 0
+    for c in ("noise_pos", "m", "dp_heldout", "param_err"):
+        np.testing.assert_array_equal(t[c], first[c], err_msg=c)
+
+
+SWEEP = ["sweep", "--noise-pos", "0.08", "--noise-rot", "0.001", "--poses", "5", "--no-progress"]
+
+
+@pytest.mark.parametrize(
+    ("extra", "expected"),
+    [
+        (["--trials", "1", "--out", "{tmp}/nodir/x.csv"], "--out {tmp}/nodir/x.csv: folder"),
+        (["--trials", "1", "--out", "{tmp}/x.csv", "--plot", "{tmp}/nodir/p.png"], "--plot"),
+        (["--trials", "1", "--out", "{tmp}/d.csv"], "d.csv: is a folder, expected a file"),
+        (["--trials", "1", "--out", "{tmp}/x.csv", "--d-v", "nan"], "--d-v must be a non-neg"),
+        (["--trials", "1", "--out", "{tmp}/x.csv", "--d-v", "-1"], "--d-v must be a non-neg"),
+        (["--trials", "1", "--out", "{tmp}/x.csv", "--d-w", "-0.1"], "--d-w must be a non-neg"),
+        (["--trials", "1", "--out", "{tmp}/x.csv", "--d-w", "inf"], "--d-w must be a non-neg"),
+        (["--trials", "0", "--out", "{tmp}/x.csv"], "--trials must be >= 1, got 0"),
+        (["--trials", "1", "--verify", "0", "--out", "{tmp}/x.csv"], "--verify must be >= 1"),
+        (["--trials", "1", "--chunk", "0", "--out", "{tmp}/x.csv"], "--chunk must be >= 1"),
+        (["--trials", "1", "--seed", "9" * 23, "--out", "{tmp}/x.csv"], "--seed must be an int"),
+        (["--trials", "1", "--out", "{tmp}/x.csv", "--plot", "{tmp}/x.csv"], "--plot and --out"),
+    ],
+    ids=[
+        "missing out folder",
+        "missing plot folder",
+        "out is a folder",
+        "nan d-v",
+        "negative d-v",
+        "negative d-w",
+        "infinite d-w",
+        "zero trials",
+        "zero verify",
+        "zero chunk",
+        "huge seed",
+        "plot is out",
+    ],
+)
+def test_sweep_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys, extra, expected):
+    from cdra_jax import cli
+
+    (tmp_path / "d.csv").mkdir()
+    argv = [*SWEEP, *(a.format(tmp=tmp_path) for a in extra)]
+    assert cli.main(argv) == cli.EXIT_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    assert expected.format(tmp=tmp_path) in err[0], err
+    assert list(tmp_path.iterdir()) == [tmp_path / "d.csv"]  # no folder made, nothing written
 
 
 def test_default_cpu_devices_pay_for_their_compilation():

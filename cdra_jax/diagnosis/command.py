@@ -46,8 +46,10 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``diagnose``; exit code 0 (also when a mismatch is found)."""
     from ..cli import EXIT_OK, _check_output, _load_arm, _noise
+    from ..cli_common import check_distinct_files
 
     noise = _noise(args)
+    check_distinct_files([("--out", args.out)], [("--data", args.data), ("--model", args.model)])
     _check_output(args.out, args.force, "--out")
     if args.plots is not None and Path(args.plots).exists() and not Path(args.plots).is_dir():
         raise NotADirectoryError(f"--plots {args.plots}: exists and is not a folder")

@@ -97,9 +97,20 @@ def frame_errors_from_mapping(
 
 
 def _number(where: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+    if isinstance(v, bool) or not isinstance(v, int | float):
         raise FrameErrorFileError(f"{where}: expected a finite number, got {v!r}")
-    return float(v)
+    try:
+        x = float(v)
+    except OverflowError:  # an integer beyond the float range
+        x = math.inf
+    if not math.isfinite(x):
+        shown = (
+            f"an integer of about {int(v.bit_length() * math.log10(2)) + 1} digits"
+            if isinstance(v, int)
+            else repr(v)
+        )
+        raise FrameErrorFileError(f"{where}: expected a finite number, got {shown}")
+    return x
 
 
 def load_frame_errors(path: str | os.PathLike, arm: Arm) -> np.ndarray:
@@ -122,6 +133,8 @@ def load_frame_errors(path: str | os.PathLike, arm: Arm) -> np.ndarray:
                 f"{path}: not valid JSON (line {e.lineno}, column {e.colno}): {e.msg}; "
                 "use a .toml suffix for TOML"
             ) from None
+        except ValueError as e:  # e.g. an integer of more than 4300 digits
+            raise FrameErrorFileError(f"{path}: not valid JSON: {e}") from None
     return frame_errors_from_mapping(spec, arm, str(path))
 
 

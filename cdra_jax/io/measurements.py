@@ -20,9 +20,10 @@ Columns (any order; the order is kept when the file is written back):
 * Optional auxiliaries: ``time_s``, ``approach.<module>`` (+1 or -1, the sign of the last motion),
   ``payload_kg``, ``temperature_c``.
 
-Every cell except ``pose`` must be a finite number. Errors are :class:`MeasurementFileError`
-(a ``ValueError``) naming the file, the line and the column. The reader accepts any number of
-rows; :func:`check_pose_count` enforces the calibration's minimum of 4 (Section IV, Eq. 9).
+Every cell except ``pose`` must be a finite number in decimal notation (``1_0`` is not read as
+10). Errors are :class:`MeasurementFileError` (a ``ValueError``) naming the file, the line and
+the column. The reader accepts any number of rows; :func:`check_pose_count` enforces the
+calibration's minimum of 4 (Section IV, Eq. 9).
 
 Writing is lossless: numbers are written with ``repr`` (the shortest text that reads back to
 the same float64), identifiers and comments as given, columns in their order. Files are written
@@ -36,6 +37,7 @@ import dataclasses
 import io
 import math
 import os
+import re
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -510,7 +512,7 @@ def loads_measurements(
         for j, name in numeric:
             cell = row[j]
             try:
-                v = float(cell)
+                v = parse_number(cell)
             except ValueError:
                 what = "empty cell" if not cell.strip() else f"not a number: {cell!r}"
                 raise MeasurementFileError(source, what, line=start, column=name) from None
@@ -730,9 +732,25 @@ def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured
     return _Layout(states, aux, orientation)
 
 
+_NUMBER = re.compile(
+    r"\s*[+-]?(?:(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?|nan|inf|infinity)\s*",
+    re.ASCII | re.IGNORECASE,
+)
+
+
+def parse_number(text: str) -> float:
+    """A cell as a float: ASCII decimal notation (``-1.5``, ``2e-3``, ``.5``; surrounding spaces
+    allowed) or ``nan``/``inf`` (rejected later as not finite). ``ValueError`` for anything
+    else, including what Python's ``float`` also accepts: digit groups with ``_`` (``1_0``),
+    non-ASCII digits."""
+    if not _NUMBER.fullmatch(text):
+        raise ValueError(f"not a number: {text!r}")
+    return float(text)
+
+
 def _is_number(text: str) -> bool:
     try:
-        float(text)
+        parse_number(text)
     except ValueError:
         return False
     return True

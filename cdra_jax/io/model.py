@@ -55,18 +55,48 @@ class ModelFileError(ValueError):
 
 
 _ROTVEC_MAX_ANGLE = 1e3  # rad; as io.measurements.ROTVEC_MAX_ANGLE
+_NAME_FORBIDDEN = frozenset('.,"')
+RESERVED_MODULE_NAMES = ("pose", "measured", "approach", "time_s", "payload_kg", "temperature_c")
+"""Names a module cannot have: the measurement file's own columns and column prefixes
+(``pose``, ``measured.*``, ``approach.<module>``, the auxiliaries)."""
 
 
 def _err(source: str, where: str, what: str) -> ModelFileError:
     return ModelFileError(f"{source}: {where}: {what}")
 
 
-def _vector(source: str, where: str, value: Any, n: int) -> np.ndarray:
+def _is_number(v: Any) -> bool:
+    """A TOML integer or float (not a bool, not a string such as ``"250"``)."""
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
+
+
+def _finite(v: Any) -> bool:
     try:
-        a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise _err(source, where, f"expected a list of {n} numbers, got {value!r}") from None
-    if a.shape != (n,):
+        return math.isfinite(v)
+    except OverflowError:  # an int beyond the float range
+        return False
+
+
+def _array(value: Any, shape: tuple[int, ...]) -> np.ndarray | None:
+    """``value`` (nested lists of numbers of ``shape``) as floats, or None when it is not one
+    (strings are not numbers here, whatever they spell)."""
+
+    def ok(v: Any, dims: tuple[int, ...]) -> bool:
+        if not dims:
+            return _is_number(v)
+        return isinstance(v, list | tuple) and len(v) == dims[0] and all(ok(x, dims[1:]) for x in v)
+
+    if not ok(value, shape):
+        return None
+    try:
+        return np.asarray(value, dtype=float)
+    except OverflowError:
+        return np.full(shape, np.inf)
+
+
+def _vector(source: str, where: str, value: Any, n: int) -> np.ndarray:
+    a = _array(value, (n,))
+    if a is None:
         raise _err(source, where, f"expected a list of {n} numbers, got {value!r}")
     if not np.all(np.isfinite(a)):
         raise _err(source, where, f"contains a non-finite number: {value!r}")
@@ -80,12 +110,13 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
     if has_matrix and has_pose:
         raise _err(source, where, "give either 'matrix' or 'xyz' + 'rotvec', not both")
     if has_matrix:
-        try:
-            M = np.asarray(spec["matrix"], dtype=float)
-        except (TypeError, ValueError):
-            raise _err(source, where, "'matrix' must be 4 rows of 4 numbers") from None
-        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-            raise _err(source, where, f"'matrix' must be 4 rows of 4 finite numbers, got {M.shape}")
+        M = _array(spec["matrix"], (4, 4))
+        if M is None or not np.all(np.isfinite(M)):
+            raise _err(
+                source,
+                where,
+                f"'matrix' must be 4 rows of 4 finite numbers, got {spec['matrix']!r}",
+            )
         if not np.allclose(M[3], [0, 0, 0, 1], atol=0):
             raise _err(source, where, f"last row of 'matrix' must be [0, 0, 0, 1], got {M[3]}")
         R = M[:3, :3]
@@ -118,6 +149,23 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
     where = f"modules[{i}] ({name!s})"
     if not isinstance(name, str) or not name:
         raise _err(source, f"modules[{i}]", "needs a 'name' (string)")
+    bad = sorted({ch for ch in name if ch in _NAME_FORBIDDEN or not ch.isprintable()})
+    if bad:
+        raise _err(
+            source,
+            where,
+            "a module name makes the measurement file's column names (<module>.q, <module>.l1, "
+            f"...), so it cannot contain {' or '.join(map(repr, bad))}",
+        )
+    if name != name.strip():
+        raise _err(source, where, "a module name cannot start or end with a space")
+    if name in RESERVED_MODULE_NAMES:
+        raise _err(
+            source,
+            where,
+            f"{name!r} is reserved for the measurement file's own columns (pose, measured.*, "
+            "approach.*, time_s, payload_kg, temperature_c); rename the module",
+        )
     kind = spec.get("kind")
     if kind not in MODULE_KINDS:
         raise _err(source, where, f"'kind' must be one of {MODULE_KINDS}, got {kind!r}")
@@ -151,11 +199,8 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         axis = axis / n
         default_limits = [[-math.pi, math.pi]] if kind == "revolute" else [[-100.0, 100.0]]
     limits = spec.get("limits", default_limits)
-    try:
-        lim = np.asarray(limits, dtype=float)
-    except (TypeError, ValueError):
-        raise _err(source, f"{where}.limits", f"expected {dof} pairs [low, high]") from None
-    if lim.shape != (dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
+    lim = _array(limits, (dof, 2))
+    if lim is None or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] >= lim[:, 1]):
         raise _err(
             source,
             f"{where}.limits",
@@ -178,9 +223,17 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
                 )
             base.append(_vector(source, f"{where}.cables[{j}].base", c["base"], 3))
             plat.append(_vector(source, f"{where}.cables[{j}].platform", c["platform"], 3))
+            if np.array_equal(base[-1], plat[-1]):
+                raise _err(
+                    source,
+                    f"{where}.cables[{j}]",
+                    f"base and platform are the same point {c['base']!r}: the cable has zero "
+                    "length in the home state and pulls in no direction there; a cable runs "
+                    "between two distinct attachment points",
+                )
             if "offset" in c:
                 v = c["offset"]
-                if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+                if not _is_number(v) or not _finite(v):
                     raise _err(
                         source, f"{where}.cables[{j}].offset", f"expected a number (mm), got {v!r}"
                     )
@@ -199,12 +252,7 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
     for key in ("mass", "pretension", "stiffness"):
         if key in spec:
             v = spec[key]
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, int | float)
-                or not math.isfinite(v)
-                or v < 0
-            ):
+            if not _is_number(v) or not _finite(v) or v < 0:
                 raise _err(source, f"{where}.{key}", f"expected a non-negative number, got {v!r}")
             kwargs[key] = float(v)
     if "com" in spec:
