@@ -14,7 +14,8 @@ from _physics_data import NOISE, base, find, recordings
 
 from cdra_jax.cli import main
 from cdra_jax.diagnosis import diagnose, diagnose_files, stats
-from cdra_jax.io import save_measurements
+from cdra_jax.io import Measurements, save_measurements
+from cdra_jax.physics import corrected_tool_pose
 
 CONTRACT_KEYS = {
     "mismatch",
@@ -85,6 +86,56 @@ def test_holm_and_subspace_helpers():
     B = np.linalg.qr(np.random.default_rng(2).standard_normal((20, 3)))[0]
     assert stats.indistinguishable(B[:, :1], B)
     assert not stats.indistinguishable(B[:, :1], B[:, 1:])
+
+
+def test_lack_of_fit_on_exact_repeats_is_not_applicable():
+    """Exactly repeated, noise-free poses: pure error and lack of fit both at rounding. Without
+    the rounding floor, F = lack of fit / 0 was astronomically significant."""
+    rng = np.random.default_rng(3)
+    groups = [np.arange(3 * i, 3 * i + 3) for i in range(4)]
+    r = 1e-13 * rng.standard_normal(72)  # rounding-level misfit, repeats identical
+    R = r.reshape(12, 6)
+    for g in groups:
+        R[g] = R[g[0]]
+    floor2 = 1e-20
+    lof = stats.lack_of_fit(r, groups, 50, floor2)
+    assert lof is not None and not lof.applicable and lof.p_value is None
+    # a real misfit between exactly repeated poses is still found (the floor is the denominator)
+    R2 = R.copy()
+    R2[::3] += 1e-3 * rng.standard_normal((4, 6))
+    for g in groups:
+        R2[g] = R2[g[0]]
+    lof = stats.lack_of_fit(R2.reshape(-1), groups, 50, floor2)
+    assert lof is not None and lof.applicable and lof.p_value < 1e-12
+    # noisy repeats: an ordinary F test, unchanged by the floor
+    e = rng.standard_normal(72)
+    with_floor = stats.lack_of_fit(e, groups, 50, floor2)
+    without = stats.lack_of_fit(e, groups, 50)
+    assert with_floor is not None and without is not None
+    assert with_floor.F == without.F and 0.0 < with_floor.p_value < 1.0
+    # an exact residual gives no significant candidate F either
+    B = np.linalg.qr(rng.standard_normal((72, 3)))[0]
+    assert stats.f_test(1e-13 * B[:, 0], B, 50, floor2)[1] > 0.5
+
+
+def test_variance_components_estimate_position_and_rotation_noise_separately():
+    """Monte Carlo on a linear fit: the estimated variances are unbiased in each group, with the
+    degrees of freedom the fit uses accounted for (a noise ratio far from 1 mm : 1 mrad)."""
+    rng = np.random.default_rng(4)
+    m, sp, sr = 12, 0.05, 5e-3
+    s = np.tile([sp] * 3 + [sr] * 3, m)
+    D = rng.standard_normal((6 * m, 22)) * np.tile([1.0] * 3 + [1e-3] * 3, m)[:, None]
+    U = stats.orthonormal_basis(D / s[:, None])
+    est = []
+    for _ in range(200):
+        w = rng.standard_normal(6 * m)
+        e = s * (w - U @ (U.T @ w))  # the residual of the fit at the true weights
+        est.append(stats.variance_components(e, D, (1e-12, 1e-15)))
+    v = np.mean(np.square(est), axis=0)
+    assert v[0] == pytest.approx(sp**2, rel=0.06)
+    assert v[1] == pytest.approx(sr**2, rel=0.06)
+    # exact data: the rounding floor, not zero
+    assert stats.variance_components(np.zeros(6 * m), D, (1e-10, 1e-13)) == (1e-10, 1e-13)
 
 
 # ----------------------------------------------------------------------------- diagnosis
@@ -189,6 +240,38 @@ def test_without_noise_values_the_noise_is_estimated():
     assert (d.effect, d.located_in) == ("cable_scale", "elbow")
     clean = diagnose(base().arm, recordings(seed=5), None)
     assert clean.effect == "none"
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_without_noise_values_clean_recordings_give_none(seed):
+    """No stated noise, a device whose position : rotation noise (0.05 mm : 5e-4 rad) is not the
+    1 mm : 1 mrad weighting: the two are estimated separately, near the truth, and clean
+    recordings are not flagged (with one fixed ratio the candidate F tests fired on about half
+    of them)."""
+    d = diagnose(base().arm, recordings(seed=seed), None, seed=seed)
+    assert d.noise["source"] == "estimated"
+    assert d.noise["position_mm"] == pytest.approx(NOISE.position_mm, rel=0.25)
+    assert d.noise["rotation_rad"] == pytest.approx(NOISE.rotation_rad, rel=0.25)
+    assert (d.effect, d.mismatch) == ("none", False), d.report
+    assert "noisier than stated" not in d.report
+
+
+@pytest.mark.parametrize("noise", [None, NOISE])
+def test_exactly_repeated_exact_poses_give_none(noise):
+    """Noise-free recordings of poses each repeated exactly three times: the pure error is zero,
+    the misfit is rounding, and nothing is missing."""
+    b = base()
+    idx = np.repeat(np.arange(10), 3)
+    T = corrected_tool_pose(b.actual, b.q, b.F, jnp.zeros(b.F.n_params))
+    aux = {k: np.asarray(v)[idx] for k, v in b.aux.items()}
+    meas = Measurements.from_arrays(b.arm, np.asarray(b.q)[idx], np.asarray(T)[idx], aux=aux)
+    d = diagnose(b.arm, meas, noise)
+    assert (d.effect, d.mismatch) == ("none", False), d.report
+    lof = d.tests["lack_of_fit"]
+    assert lof["repeated_groups"] == 10 and not lof["applicable"] and lof["p_value"] is None
+    assert "lack_of_fit" not in d.tests["combined"]["tests"]
+    assert "not applicable" in d.report
+    _check_contract(d)
 
 
 def test_bad_inputs_raise_clear_errors():

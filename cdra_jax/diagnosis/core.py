@@ -32,6 +32,7 @@ import scipy.stats
 
 from ..arm import Arm
 from ..calibration import NoiseModel, whitening
+from ..calibration.model import stacked_system
 from ..calibration.validation import MIN_POSES
 from ..io.measurements import Measurements
 from ..physics import PROBES, VOCABULARY, Candidate, Effect, candidates
@@ -71,7 +72,22 @@ ABSORBED_EXACTLY = (
     "a constant tool or calibration-block offset: the tool frame error absorbs it exactly",
 )
 
-_NOISE_RATIO_DEFAULT = (1.0, 1e-3)  # mm, rad: the ratio used to weight when no noise is given
+_NOISE_RATIO_DEFAULT = (1.0, 1e-3)  # mm, rad: the first fit's weighting when no noise is given
+
+
+def _estimate_noise(arm: Arm, q, T, floor: tuple[float, float]) -> NoiseModel:
+    """Position and rotation noise estimated separately from a geometric fit (no noise given).
+
+    A first fit weighted 1 mm : 1 mrad; then :func:`stats.variance_components` on its residual
+    in mm and rad (the tool-point position error and the rotation of each pose), which
+    reweights the linearised fit until each group's residual sum of squares matches its share
+    of the residual degrees of freedom."""
+    sol = geometric_fit(arm, q, T, NoiseModel(*_NOISE_RATIO_DEFAULT))
+    # whitening by (1 mm, 1 rad): rows in mm (tool point) and rad, the Jacobian alike
+    e, D = stacked_system(arm.with_frames(sol.frames), q, T, NoiseModel(1.0, 1.0))
+    sp, sr = stats.variance_components(np.asarray(e, float), np.asarray(D, float), floor)
+    # arrays, not Python floats: the compiled fit treats floats as static (one compile each)
+    return NoiseModel(jnp.asarray(sp, q.dtype), jnp.asarray(sr, q.dtype))
 
 
 def _as_arrays(arm: Arm, meas: Measurements):
@@ -182,9 +198,10 @@ def diagnose(
             measured tool poses, auxiliary columns ``time_s``, ``approach.<module>``,
             ``payload_kg``).
         noise: the measuring device's noise (position mm, rotation rad std). ``None``: the
-            noise scale is estimated from the fit (with a 1 mm : 1 mrad weighting), and only
-            the tests that need no noise value (lack of fit on repeated poses, candidate F
-            tests) detect a mismatch.
+            position and rotation noise are estimated separately from the geometric fit's
+            residual (variance components, with the degrees of freedom the fit uses; see
+            :func:`stats.variance_components`), and only the tests that need no noise value
+            (lack of fit on repeated poses, candidate F tests) detect a mismatch.
         seed: seed of the cross-validation folds.
         folds: number of cross-validation folds (poses are dealt at random).
         alpha: significance level of the detection and of the (Holm-corrected) candidate tests.
@@ -199,7 +216,9 @@ def diagnose(
     m = meas.m
     N = 6 * m
     given = noise is not None
-    weight_noise = noise if noise is not None else NoiseModel(*_NOISE_RATIO_DEFAULT)
+    # below this a residual is rounding (exact data), not measurement noise
+    floor_phys = stats.rounding_floor(np.asarray(meas.measured)[:, :3, 3])
+    weight_noise = noise if noise is not None else _estimate_noise(arm, q, T, floor_phys)
     G = whitening(T, weight_noise)
 
     # 1. geometric fit
@@ -227,13 +246,13 @@ def diagnose(
     UD = stats.orthonormal_basis(D)
     rank = UD.shape[1]
     df_resid = N - rank
-    sigma_scale = 1.0
-    if not given:
-        sigma_scale = float(np.sqrt(max(r @ r, 1e-300) / max(df_resid, 1)))
-        r, D, J = r / sigma_scale, D / sigma_scale, J / sigma_scale
-    used_noise = NoiseModel(
-        float(weight_noise.position_mm) * sigma_scale,
-        float(weight_noise.rotation_rad) * sigma_scale,
+    # The estimated noise already carries its scale (each group's residual sum of squares over
+    # its degrees of freedom), so the whitened residual has unit variance either way.
+    used_noise = NoiseModel(float(weight_noise.position_mm), float(weight_noise.rotation_rad))
+    # mean square of the rounding floor per whitened entry (position rows, then rotation rows)
+    floor2 = 0.5 * (
+        (floor_phys[0] / float(used_noise.position_mm)) ** 2
+        + (floor_phys[1] / float(used_noise.rotation_rad)) ** 2
     )
     fold = stats.fold_of_poses(m, folds, seed)
 
@@ -243,14 +262,14 @@ def diagnose(
     chi2_in = float(r @ r)
     p_in = float(scipy.stats.chi2.sf(chi2_in, df_resid)) if given else None
     groups = stats.repeat_groups(np.asarray(meas.q), REPEAT_TOL)
-    lof = stats.lack_of_fit(r, groups, df_resid)
+    lof = stats.lack_of_fit(r, groups, df_resid, floor2)
 
     # 4. candidate table: one row per (effect, location); its variants are alternatives
     evals: dict[Candidate, dict] = {}
     for c in tested:
         Jc = J[:, cols[c]]
         proj = stats.project(Jc, UD)
-        Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid)
+        Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid, floor2)
         A = np.hstack([D, Jc])
         gain = merit = None
         if proj.df:
@@ -310,8 +329,8 @@ def diagnose(
     tests_used = {"candidates": p_family}
     if p_heldout is not None:
         tests_used["heldout_chi2"] = p_heldout
-    if lof is not None:
-        tests_used["lack_of_fit"] = lof[1]
+    if lof is not None and lof.p_value is not None:
+        tests_used["lack_of_fit"] = lof.p_value
     p_value = min(1.0, len(tests_used) * min(tests_used.values()))
     mismatch = p_value < alpha
 
@@ -332,7 +351,7 @@ def diagnose(
         same = [c for c in live if (c.name, c.location) == (best.name, best.location)]
         forms, gains = _refinements(best, same, cols, r, D, J, fold)
         best = forms[0]
-        args = (fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale)
+        args = (fit_arm, arm, q, T, G, F_all, r, D, J, fold, given)
         refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(forms, cols, *args)
         # further forms, judged on the model linearised at the refit (a large effect moves
         # the solution far from the geometric fit, where the first linearisation was made)
@@ -376,7 +395,7 @@ def diagnose(
     probe_rows = []
     location_source = None if located_in is None else "candidate"
     if effect_name == "unattributed":
-        probe_rows, located_in = _locate(probes, cols, r, J, UD, df_resid, alpha)
+        probe_rows, located_in = _locate(probes, cols, r, J, UD, df_resid, alpha, floor2)
         location_source = None if located_in is None else "probe"
         if best is not None:
             parameters = {}
@@ -418,11 +437,12 @@ def diagnose(
             "lack_of_fit": None
             if lof is None
             else {
-                "F": lof[0],
-                "p_value": lof[1],
-                "df_lack_of_fit": lof[2],
-                "df_pure_error": lof[3],
+                "F": lof.F,
+                "p_value": lof.p_value,
+                "df_lack_of_fit": lof.df_lack_of_fit,
+                "df_pure_error": lof.df_pure_error,
                 "repeated_groups": len(groups),
+                "applicable": lof.applicable,
             },
             "candidates_min_p_holm": p_family,
             "combined": {"p_value": p_value, "tests": sorted(tests_used), "rule": "Bonferroni"},
@@ -433,6 +453,7 @@ def diagnose(
             "seed": seed,
             "n_poses": m,
             "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": floor[1]},
+            "rounding_floor": {"position_mm": floor_phys[0], "rotation_rad": floor_phys[1]},
             "noise_suggested": _suggested_noise(r, df_resid, used_noise),
             "geometric_fit": {
                 "converged": bool(sol.converged),
@@ -528,9 +549,7 @@ def _refinements(best, same, cols, r, D, J, fold):
     return forms, gains
 
 
-def _refit(
-    forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, sigma_scale, y_start=None
-):
+def _refit(forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, y_start=None):
     """Joint LM refit of the frame errors and the parameters of ``forms`` (the selected
     candidate first, then the forms added to it), from ``y_start`` (all entries of ``y``) or
     from the linearised fit at the geometric solution. Returns ``(info, parameters, heldout,
@@ -548,8 +567,8 @@ def _refit(
         y0 = np.array(y_start, float)
     y_all, ok, steps = joint_refit(y0, free, fit_arm, q, T, G, F_all)
     r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, q.dtype), fit_arm, q, T, G, F_all)
-    r1 = np.asarray(r1, float) / sigma_scale
-    J1_all = np.asarray(J1_all, float) / sigma_scale
+    r1 = np.asarray(r1, float)
+    J1_all = np.asarray(J1_all, float)
     J1 = J1_all[:, free]
     U1 = stats.orthonormal_basis(J1)
     dof = r1.size - U1.shape[1]
@@ -584,12 +603,12 @@ def _refit(
     return info, params, ho1, p_after, np.asarray(y_all, float), r1, J1_all
 
 
-def _locate(probes, cols, r, J, UD, df_resid, alpha):
+def _locate(probes, cols, r, J, UD, df_resid, alpha, floor2=0.0):
     """Generic probes: which location explains most of the residual (min Bonferroni p)."""
     rows = []
     for c in probes:
         proj = stats.project(J[:, cols[c]], UD)
-        Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid)
+        Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid, floor2)
         rows.append({"location": c.location, "kind": c.effect.summary, "df": df1, "F": Fv, "p": p})
     n = max(len(rows), 1)
     for row in rows:

@@ -42,10 +42,16 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         )
     if t["lack_of_fit"] is not None:
         lof = t["lack_of_fit"]
-        parts.append(
-            f"lack of fit on {lof['repeated_groups']} repeated pose(s) F = {lof['F']:.3g}, "
-            f"p = {_p(lof['p_value'])}"
-        )
+        if lof.get("applicable", True):
+            parts.append(
+                f"lack of fit on {lof['repeated_groups']} repeated pose(s) F = {lof['F']:.3g}, "
+                f"p = {_p(lof['p_value'])}"
+            )
+        else:
+            parts.append(
+                f"lack of fit on {lof['repeated_groups']} repeated pose(s) not applicable (the "
+                "repeats and the fit agree to rounding: exact data)"
+            )
     parts.append(f"best candidate test p = {_p(t['candidates_min_p_holm'])} (Holm)")
     verdict = (
         "is WORSE than the measuring device explains"
@@ -78,12 +84,21 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "of that kind but of another form than the vocabulary's."
             )
         else:
-            sug = det["noise_suggested"]
             msg += (
-                " No single location explains it, and no pose-dependent probe finds structure "
-                "in it: the measuring device may be noisier than stated (the residual suggests "
-                f"{sug['position_mm']:.3g} mm, {sug['rotation_rad']:.3g} rad)."
+                " No single location explains it, and no pose-dependent probe finds structure in it"
             )
+            if d.noise["source"] == "given":
+                sug = det["noise_suggested"]
+                msg += (
+                    ": the measuring device may be noisier than stated (the residual suggests "
+                    f"{sug['position_mm']:.3g} mm, {sug['rotation_rad']:.3g} rad)."
+                )
+            else:
+                msg += (
+                    " (the noise was estimated from the residual, so the misfit is one that "
+                    "the tests without a noise value see: between repeated poses, or along a "
+                    "candidate)."
+                )
         lines.append(msg)
     else:
         assert best is not None

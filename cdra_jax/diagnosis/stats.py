@@ -268,15 +268,22 @@ def project(J: np.ndarray, UD: np.ndarray) -> Projection:
     return Projection(U[:, keep], float(1.0 - vis.max()), vis)
 
 
-def f_test(r: np.ndarray, basis: np.ndarray, df_resid: int) -> tuple[float, float, int, int]:
-    """``(F, p, df1, df2)`` for adding the projected directions ``basis`` to the fit."""
+def f_test(
+    r: np.ndarray, basis: np.ndarray, df_resid: int, floor2: float = 0.0
+) -> tuple[float, float, int, int]:
+    """``(F, p, df1, df2)`` for adding the projected directions ``basis`` to the fit.
+
+    ``floor2``: the mean square of rounding error per entry of ``r`` (:func:`rounding_floor`);
+    the residual mean square in the denominator is never taken below it, so that a residual
+    at the rounding level (exact data) gives no significant F.
+    """
     k = basis.shape[1]
     df2 = df_resid - k
     if k == 0 or df2 <= 0:
         return float("nan"), 1.0, k, df2
     T = float(np.sum((basis.T @ r) ** 2))
     rest = max(float(r @ r) - T, 1e-300)
-    F = (T / k) / (rest / df2)
+    F = (T / k) / max(rest / df2, floor2)
     return F, float(scipy.stats.f.sf(F, k, df2)), k, df2
 
 
@@ -309,14 +316,40 @@ def repeat_groups(q: np.ndarray, tol: float) -> list[np.ndarray]:
     return out
 
 
+@dataclass
+class LackOfFit:
+    """Lack-of-fit F test from repeated poses (:func:`lack_of_fit`).
+
+    Attributes:
+        F: the statistic (None when not applicable).
+        p_value: ``P(F' >= F)`` under the model (None when not applicable).
+        df_lack_of_fit, df_pure_error: its degrees of freedom.
+        applicable: False when both the lack of fit and the pure error are at the rounding
+            level (exact data: there is no scatter to compare the misfit with, and no misfit).
+    """
+
+    F: float | None
+    p_value: float | None
+    df_lack_of_fit: int
+    df_pure_error: int
+    applicable: bool = True
+
+
 def lack_of_fit(
-    r: np.ndarray, groups: list[np.ndarray], df_resid: int
-) -> tuple[float, float, int, int] | None:
-    """Lack-of-fit F test from repeated poses: ``(F, p, df_lof, df_pure)`` or None.
+    r: np.ndarray, groups: list[np.ndarray], df_resid: int, floor2: float = 0.0
+) -> LackOfFit | None:
+    """Lack-of-fit F test from repeated poses, or None (no repeats, or no degrees of freedom).
 
     Pure error: scatter of the whitened residuals within each group of repeats (6 entries per
     pose); lack of fit: the rest of the residual sum of squares. Needs no noise value (only
     the ratio of position to orientation noise enters through the whitening).
+
+    ``floor2`` is the mean square of rounding error per entry of ``r`` (:func:`rounding_floor`).
+    The pure-error mean square is never taken below it: exactly repeated, noise-free poses
+    have a pure error of zero (or of rounding), against which any rounding-level misfit would
+    look infinitely significant. When both mean squares are at or below the floor the test is
+    not applicable (``applicable=False``, no p-value): the data are exact and the model fits
+    them to rounding.
     """
     if not groups:
         return None
@@ -331,5 +364,68 @@ def lack_of_fit(
     if df_lof <= 0 or df_pe <= 0:
         return None
     ss_lof = max(float(r @ r) - ss_pe, 0.0)
-    F = (ss_lof / df_lof) / max(ss_pe / df_pe, 1e-300)
-    return F, float(scipy.stats.f.sf(F, df_lof, df_pe)), df_lof, df_pe
+    ms_lof, ms_pe = ss_lof / df_lof, ss_pe / df_pe
+    if floor2 > 0 and max(ms_lof, ms_pe) <= floor2:
+        return LackOfFit(None, None, df_lof, df_pe, applicable=False)
+    F = ms_lof / max(ms_pe, floor2, 1e-300)
+    return LackOfFit(F, float(scipy.stats.f.sf(F, df_lof, df_pe)), df_lof, df_pe)
+
+
+ROUNDING = 1e3 * float(np.finfo(float).eps)
+"""Relative rounding floor of a residual: 1000 float64 ulps of the measured magnitudes (the
+residual of an exact fit is about one ulp of the tool position; the margin covers the chain of
+products in the kinematics)."""
+
+
+def rounding_floor(positions_mm: np.ndarray) -> tuple[float, float]:
+    """``(position mm, rotation rad)`` below which a residual is rounding, not measurement:
+    :data:`ROUNDING` times the largest measured distance from the origin (at least 1 mm), and
+    :data:`ROUNDING` rad."""
+    size = max(1.0, float(np.max(np.linalg.norm(np.asarray(positions_mm), axis=-1), initial=0.0)))
+    return ROUNDING * size, ROUNDING
+
+
+def variance_components(
+    e: np.ndarray,
+    D: np.ndarray,
+    floor: tuple[float, float],
+    *,
+    iterations: int = 100,
+    rtol: float = 1e-10,
+) -> tuple[float, float]:
+    """Position and rotation noise ``(sp, sr)`` estimated from a residual, separately.
+
+    ``e (6 m,)`` is the residual in physical units (per pose: the tool-point position error in
+    mm, then the rotation in rad) and ``D (6 m, n)`` the Jacobian of the fitted parameters in
+    the same units. Each group's variance is its weighted residual sum of squares over its
+    share of the residual degrees of freedom (Foerstner's variance-component estimation,
+    REML-like): with rows weighted by ``1 / s``, ``H`` the hat matrix of the weighted fit,
+
+        ``s_g^2 = sum_{i in g} (s_g res_i)^2 / (n_g - sum_{i in g} H_ii)``,
+
+    iterated to its fixed point (the weighted fit and ``H`` depend on ``s``). Each std is kept
+    at or above its ``floor`` (:func:`rounding_floor`), so that exact data give the rounding
+    floor rather than zero. With one fixed ratio instead (the 1 mm : 1 mrad weighting used
+    before), the whitened residual of a device whose ratio differs is not homoscedastic, and
+    the candidate F tests, which assume it is, fire on clean data.
+    """
+    N = e.shape[0]
+    pos = np.tile(np.array([True] * 3 + [False] * 3), N // 6)
+    fp, fr = float(floor[0]), float(floor[1])
+    sp = max(float(np.sqrt(np.mean(e[pos] ** 2))), fp)
+    sr = max(float(np.sqrt(np.mean(e[~pos] ** 2))), fr)
+    for _ in range(iterations):
+        s = np.where(pos, sp, sr)
+        U = orthonormal_basis(D / s[:, None])
+        rw = e / s
+        res = rw - U @ (U.T @ rw)
+        h = np.sum(U * U, axis=1)
+        new = []
+        for g, sg, fg in ((pos, sp, fp), (~pos, sr, fr)):
+            dof = max(float(g.sum() - h[g].sum()), 1.0)
+            new.append(max(sg * float(np.sqrt(np.sum(res[g] ** 2) / dof)), fg))
+        done = abs(new[0] - sp) <= rtol * sp and abs(new[1] - sr) <= rtol * sr
+        sp, sr = new
+        if done:
+            break
+    return sp, sr
