@@ -54,6 +54,18 @@ used, so the greedy passes first raise the rank. The loops are jitted (``lax`` l
 How good can a selection be? :func:`prediction_bound` solves the convex approximate-design
 relaxation of the I-criterion over the pool and returns a certified lower bound on the
 predicted ``sqrt(E[dp^2])`` of *any* ``m`` poses from it.
+
+Unbounded predictions. The criteria live on ``W``, what the *pool* can identify. Where the
+reference states' position rows see a direction outside it (``|P_h (I - W W^T)| > tol |P_h|``,
+``tol = IDENTIFIABLE_TOL = 1e-8`` of :mod:`cdra_jax.uncertainty`; e.g. a pool of repeated or
+too similar states and a reference elsewhere), no pose set from the pool bounds the error
+there: :func:`prediction_bound` returns ``inf``, as does a selection's ``prediction_rms``,
+which is :func:`cdra_jax.uncertainty.predicted_pose_covariance` of the selected poses at the
+reference states (also ``inf`` when the selected poses identify less than the pool). The
+CDRA's two structural directions move no tool pose and never count.
+
+The number of poses ``m`` must be an integer of at least 4 (the paper's lower bound,
+:data:`cdra_jax.calibration.MIN_POSES`).
 """
 
 from __future__ import annotations
@@ -69,9 +81,10 @@ from jax.typing import ArrayLike
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
-from .calibration.validation import require_finite_states
+from .calibration.validation import MIN_POSES, require_finite_states
 from .compilation import filter_jit, jit
 from .simulation import StateSampler, sample_poses
+from .uncertainty import IDENTIFIABLE_TOL, predicted_pose_covariance
 
 CRITERIA: tuple[str, ...] = ("i-opt", "d-opt", "o1")
 DEFAULT_CRITERION = "i-opt"
@@ -93,8 +106,11 @@ class PoseSelection:
         log_det_greedy: the same for the criterion's own greedy set, before the exchanges.
         o1: the observability index ``exp(log_det / (2 r)) / sqrt(m)`` of the same matrix.
         prediction_rms: predicted ``sqrt(E[dp^2])`` (mm, first order) of a calibration from the
-            selected poses at the reference states (``sqrt(tr(Q M^-1))``, the I-criterion);
-            ``nan`` without a noise model.
+            selected poses at the reference states
+            (:func:`cdra_jax.uncertainty.predicted_pose_covariance`; ``sqrt(tr(Q M^-1))``, the
+            I-criterion, when the poses identify the pool's subspace and the reference sees no
+            more); ``inf`` when the selected poses leave a direction unidentified that moves
+            the tool position at a reference state; ``nan`` without a noise model.
         rank: dimension ``r`` of the identifiable subspace of the pool.
         n_exchanges: swaps made by the exchange pass (for ``"i-opt"``, by the start that won).
     """
@@ -354,6 +370,41 @@ _sample_poses_jit = filter_jit(sample_poses)  # one compile instead of many eage
 _select_i_jit = jit(_select_i, static_argnums=(2, 4, 5, 6))
 
 
+def _check_count(value, name: str, minimum: int, what: str) -> int:
+    """``value`` as an ``int``: an integer (not a bool) of at least ``minimum``."""
+    if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{name} must be an integer ({what}), got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be at least {minimum} ({what}), got {value}")
+    return int(value)
+
+
+def _check_m(m) -> int:
+    """The number of poses: an integer of at least ``MIN_POSES`` (4, the paper's bound)."""
+    return _check_count(
+        m, "m", MIN_POSES, f"the number of poses; {MIN_POSES} is the paper's lower bound"
+    )
+
+
+def _require_noise(noise: NoiseModel | None, what: str) -> NoiseModel:
+    if noise is None:
+        raise ValueError(
+            f"{what} weights the poses by the measurement noise: pass "
+            "noise=NoiseModel(position_mm, rotation_rad)"
+        )
+    return noise
+
+
+def _sees_outside(blocks: Array, basis: np.ndarray, tol: float = IDENTIFIABLE_TOL) -> bool:
+    """Whether the position rows of any block ``(K, 6, n)`` have a component outside the span
+    of ``basis (n, r)`` larger than ``tol`` times their size (Frobenius norms, per block)."""
+    P = np.asarray(blocks)[..., :3, :]
+    W = np.asarray(basis)
+    outside = P - (P @ W) @ W.T
+    num = np.sum(outside**2, axis=(-2, -1))
+    return bool(np.any(num > tol**2 * np.sum(P**2, axis=(-2, -1))))
+
+
 def _check_pool(arm: Arm, pool: ArrayLike, name: str = "pool") -> np.ndarray:
     pool = np.asarray(pool, dtype=float)
     if pool.ndim != 2 or pool.shape[1] != arm.dof:
@@ -403,7 +454,7 @@ def select_from_pool(
         arm: model to linearise at (the nominal arm).
         pool: candidate module states, e.g. from :func:`cdra_jax.simulation.sample_poses`
             (tension-feasible where the model has cables).
-        m: number of poses to select (``<= N``).
+        m: number of poses to select, an integer in ``[4, N]`` (4: the paper's lower bound).
         noise: the measuring device's noise; required for ``"i-opt"`` and ``"d-opt"``, unused
             for ``"o1"``.
         criterion: ``"i-opt"`` (default), ``"d-opt"`` or ``"o1"``.
@@ -411,12 +462,13 @@ def select_from_pool(
             sample the I-criterion averages over and ``prediction_rms`` is evaluated at);
             default: the pool.
         exchange: run the exchange pass after the greedy selection.
-        max_exchanges: cap on swaps (default ``10 m``).
+        max_exchanges: cap on swaps, a non-negative integer (default ``10 m``).
         rcond: relative singular-value cut-off for the identifiable subspace.
 
     Raises:
-        ValueError: unknown criterion, no noise model for ``"i-opt"`` / ``"d-opt"``, ``m`` out
-            of range or a pool / reference of the wrong shape or with a non-finite state.
+        ValueError: unknown criterion, no noise model for ``"i-opt"`` / ``"d-opt"``, ``m`` not
+            an integer in ``[4, N]``, a negative or non-integer ``max_exchanges``, or a pool /
+            reference of the wrong shape or with a non-finite state.
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
@@ -425,30 +477,33 @@ def select_from_pool(
             f"criterion {criterion!r} weights the poses by the measurement noise: pass "
             "noise=NoiseModel(position_mm, rotation_rad) (or use criterion='o1')"
         )
+    m = _check_m(m)
+    if max_exchanges is not None:
+        max_exchanges = _check_count(max_exchanges, "max_exchanges", 0, "a cap on swaps")
     pool = _check_pool(arm, pool)
     reference = pool if reference is None else _check_pool(arm, reference, "reference")
-    if not 1 <= m <= pool.shape[0]:
+    if m > pool.shape[0]:
         raise ValueError(f"cannot select m = {m} poses from a pool of {pool.shape[0]}")
     A, W, B = _projected_blocks(arm, pool, None if criterion == "o1" else noise, rcond)
     r = W.shape[1]
     eps = _RIDGE * jnp.sum(B * B) / (pool.shape[0] * r)
-    max_swaps = 10 * m if max_exchanges is None else int(max_exchanges)
+    max_swaps = 10 * m if max_exchanges is None else max_exchanges
     if criterion == "i-opt":
         assert noise is not None  # checked above
         Q = _reference_weight(arm, reference, noise, W)
-        idx_greedy, idx, n_swaps = _select_i_jit(
-            B, Q, int(m), eps, bool(exchange), max_swaps, 1e-10
-        )
+        idx_greedy, idx, n_swaps = _select_i_jit(B, Q, m, eps, bool(exchange), max_swaps, 1e-10)
     else:
-        idx_greedy, idx, n_swaps = _select_jit(B, int(m), eps, bool(exchange), max_swaps, 1e-10)
+        idx_greedy, idx, n_swaps = _select_jit(B, m, eps, bool(exchange), max_swaps, 1e-10)
     idx = np.asarray(idx)
     log_det = float(log_det_information(A[idx], W))
     log_det_greedy = float(log_det_information(A[np.asarray(idx_greedy)], W))
     rms = float("nan")
     if noise is not None:
-        _, Ww, Bw = (A, W, B) if criterion != "o1" else _projected_blocks(arm, pool, noise, rcond)
-        Qw = _reference_weight(arm, reference, noise, Ww)
-        rms = float(jnp.sqrt(_i_value(Bw, Qw, jnp.asarray(idx), 0.0)))
+        # The uncertainty module's prediction from the selected set's own Jacobian: equal to
+        # sqrt(tr(Q M^-1)) when the set identifies W and the reference sees nothing outside
+        # it, inf where the set leaves a direction that moves a reference position unidentified.
+        pred = predicted_pose_covariance(arm, pool[idx], noise, reference, rcond=rcond)
+        rms = float(pred.expected_delta_p)
     return PoseSelection(
         states=pool[idx],
         indices=idx,
@@ -483,11 +538,15 @@ def select_poses(
     The default sampler is :func:`cdra_jax.simulation.sample_poses`: uniform within the joint
     limits, and with tension closure in every module where the model has cables (poses the arm
     can hold).
+
+    Raises:
+        ValueError: ``m`` not an integer of at least 4, ``pool_size`` not an integer of at
+            least ``m``, and the errors of :func:`select_from_pool`.
     """
-    if pool_size < m:
-        raise ValueError(f"pool_size ({pool_size}) must be at least m ({m})")
+    m = _check_m(m)
+    pool_size = _check_count(pool_size, "pool_size", m, "the number of candidate states, >= m")
     key = jax.random.PRNGKey(0) if key is None else key
-    pool = (sampler or _sample_poses_jit)(key, arm, int(pool_size))
+    pool = (sampler or _sample_poses_jit)(key, arm, pool_size)
     return select_from_pool(
         arm,
         np.asarray(pool),
@@ -507,9 +566,10 @@ class PredictionBound:
 
     Attributes:
         lower: no ``m`` poses from the pool give a smaller predicted ``sqrt(E[dp^2])`` at the
-            reference states than this (mm).
+            reference states than this (mm); ``inf`` when the reference states see a direction
+            that no pose of the pool identifies (module docstring).
         approximate: ``sqrt(tr(Q M(w)^-1) / m)`` of the best weighted design found (mm); the
-            optimum of the relaxation lies in ``[lower, approximate]``.
+            optimum of the relaxation lies in ``[lower, approximate]``; ``inf`` with ``lower``.
         weights: design weights over the pool ``(N,)``, summing to 1.
         support: number of pool states with weight above ``1e-3``.
         iterations: multiplicative-algorithm steps run.
@@ -561,21 +621,42 @@ def prediction_bound(
     (``w_i <- w_i sqrt(d_i / phi)``, ``d_i = tr(F_i M^-1 Q M^-1)``) approaches it, and
     convexity gives the certificate ``phi* >= phi(w)^2 / max_i d_i`` at every ``w`` (the
     tangent plane of the convex ``phi`` at ``t M(w)``, optimised over ``t``). Returned as RMS
-    position errors (mm): ``lower = sqrt(phi(w)^2 / max_i d_i / m)``.
+    position errors (mm): ``lower = sqrt(phi(w)^2 / max_i d_i / m)``. Both are ``inf`` when a
+    reference state's position sees a direction outside the pool's identifiable subspace.
+
+    Args:
+        arm: model to linearise at (the nominal arm).
+        pool: candidate module states ``(N, dof)``.
+        m: number of poses, an integer of at least 4 (repeats allowed: the bound holds for
+            multisets too).
+        noise: the measuring device's noise (scalar stds).
+        reference: states ``(K, dof)`` to predict at; default: the pool.
+        iterations: multiplicative-algorithm steps, a non-negative integer (the certificate
+            holds after any number; 0: uniform weights).
+        rcond: relative singular-value cut-off for the identifiable subspace.
+
+    Raises:
+        ValueError: no noise model, ``m`` or ``iterations`` out of range or not integers, or a
+            pool / reference of the wrong shape or with a non-finite state.
     """
+    noise = _require_noise(noise, "prediction_bound")
+    m = _check_m(m)
+    iterations = _check_count(iterations, "iterations", 0, "multiplicative-algorithm steps")
     pool = _check_pool(arm, pool)
     reference = pool if reference is None else _check_pool(arm, reference, "reference")
-    if m < 1:
-        raise ValueError(f"m must be positive, got {m}")
     _, W, B = _projected_blocks(arm, pool, noise, rcond)
     Q = _reference_weight(arm, reference, noise, W)
     F = jnp.einsum("nar,nas->nrs", B, B)
-    w, phi, dmax = _approximate_i_design(F, Q, int(iterations))
+    w, phi, dmax = _approximate_i_design(F, Q, iterations)
     w = np.asarray(w)
+    lower = float(np.sqrt(float(phi) ** 2 / float(dmax) / m))
+    approximate = float(np.sqrt(float(phi) / m))
+    if _sees_outside(information_blocks(arm, reference, noise), W):
+        lower = approximate = float("inf")
     return PredictionBound(
-        lower=float(np.sqrt(float(phi) ** 2 / float(dmax) / m)),
-        approximate=float(np.sqrt(float(phi) / m)),
+        lower=lower,
+        approximate=approximate,
         weights=w,
         support=int(np.sum(w > 1e-3)),
-        iterations=int(iterations),
+        iterations=iterations,
     )

@@ -16,7 +16,25 @@ so:
 * the tool pose predicted at a state ``q`` moves by the world-frame twist
   ``dT = D(q) X`` (``T -> exp(hat(dT)) T``, Eqs. 5-8), so its twist covariance is
   ``D(q) F^+ D(q)^T``; the position error is ``[I, -hat(p)] dT`` (mm) and the world-frame
-  orientation error is the rotational part ``w`` (rad).
+  orientation error is the rotational part ``w`` (rad). That is only the covariance when every
+  direction that moves the tool at ``q`` is identified by the calibration poses: where the
+  position (orientation) rows of ``D(q)`` have a component in the null space ``N`` of ``D~``,
+  ``|rows N| > tol |rows|`` (Frobenius norms, ``tol = IDENTIFIABLE_TOL = 1e-8``), the error
+  there is not bounded by the noise at all (the minimum-norm estimate leaves that component of
+  the true errors uncorrected) and the predicted covariance is ``inf``. Directions that move no
+  tool pose (the CDRA's two, a screw along the elbow axis moved between ``upper_arm`` and
+  ``forearm``) are in every ``N`` and give ``|rows N| < 1e-15 |rows|``: they never make a
+  prediction infinite. Pose sets of rank below the structural one (22 for the CDRA: too few or
+  repeated poses) and empty ones do, at every state they do not pin down. The threshold is far
+  from both: rounding contaminates a computed null vector by about ``eps s_max / s_r``
+  (``s_r``: the smallest kept singular value), which reaches ``1e-8`` only for sets within a
+  factor ``~1e8 eps`` of the rank cut-off, whose predictions are meaningless anyway.
+
+Gradients. The covariance is built from the pseudo-inverse ``D~^+`` with its constant-rank
+derivative (Golub and Pereyra), not by differentiating an SVD or eigendecomposition (whose
+derivatives are undefined at the CDRA's repeated zero singular values): the covariances and
+predicted accuracies are differentiable w.r.t. the states, the model and the noise wherever the
+numerical rank does not change.
 
 Robust fits. After :func:`~cdra_jax.calibration.calibrate_robust` pass its final IRLS weights
 ``w_i`` (``weights=``). The covariance is then the weighted (IRLS) form
@@ -43,6 +61,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -58,7 +77,90 @@ from .identifiability import analyze as analyze_identifiability
 
 DEFAULT_CONFIDENCE = 0.95
 IDENTIFIABLE_TOL = 1e-8
-"""A direction ``c`` counts as identifiable when ``|P_null c| <= IDENTIFIABLE_TOL |c|``."""
+"""A direction ``c`` counts as identifiable when ``|P_null c| <= IDENTIFIABLE_TOL |c|``; the
+tool pose at a state is predicted with a finite covariance when its Jacobian rows ``R`` satisfy
+``|R N| <= IDENTIFIABLE_TOL |R|`` (``N``: the calibration set's null space)."""
+
+
+def _check_states(arm: Arm, q: Array, name: str) -> None:
+    """Trace-time shape check of module states ``(..., m, dof)``."""
+    if q.ndim < 2 or q.shape[-1] != arm.dof:
+        raise ValueError(
+            f"{name} must have shape (m, {arm.dof}) with columns {arm.state_names}, got {q.shape}"
+        )
+
+
+def _check_noise_and_measured(
+    noise: NoiseModel | None, measured: ArrayLike | None, poses: tuple[int, ...]
+) -> None:
+    """Trace-time checks: noise stds are numbers or one per pose, measured poses one per state."""
+    if noise is not None:
+        for name in ("position_mm", "rotation_rad"):
+            shape = np.shape(getattr(noise, name))
+            try:
+                ok = np.broadcast_shapes(shape, poses) == poses
+            except ValueError:
+                ok = False
+            if not ok:
+                raise ValueError(
+                    f"noise.{name} must be a number or one std per pose, shape (m,) = "
+                    f"({poses[-1]},), got shape {shape}"
+                )
+    if measured is not None and np.shape(measured) != poses + (4, 4):
+        raise ValueError(
+            f"measured must hold one tool pose per state of q, shape (m, 4, 4) = "
+            f"{poses + (4, 4)}, got {np.shape(measured)}"
+        )
+
+
+def _check_directions(c: Array, n: int) -> None:
+    if c.ndim < 1 or c.shape[-1] != n:
+        raise ValueError(
+            f"directions must have shape (k, n_params) = (k, {n}) (one combination of the "
+            f"parameters per row) or ({n},) for a single one, got {c.shape}"
+        )
+
+
+def _pinv_factor_value(A: Array, rcond: float) -> tuple[Array, Array, Array, Array]:
+    """``(L, s, U, Vt)``: thin SVD ``A = U diag(s) Vt`` of ``A (M, n)``, ``M >= n``, and the
+    square-root factor ``L = V_r S_r^-1 (n, n)`` of ``(A^T A)^+`` (zero columns past the rank
+    ``r``: singular values at most ``rcond * s_max``).
+
+    Derivative (custom JVP): ``dL = dA^+ U`` with the constant-rank derivative of the
+    pseudo-inverse, ``dA^+ = -A^+ dA A^+ + A^+ A^+T dA^T (I - A A^+) + (I - A^+ A) dA^T A^+T A^+``,
+    so that ``d(L L^T) = d(A^+ A^+T)`` exactly (``L L^T = A^+ A^+T`` and ``U U^T A^+T = A^+T``);
+    ``ds_k = u_k^T dA v_k``. ``U`` and ``Vt`` get zero tangents: use them only with stopped
+    gradients (their derivative is undefined where singular values repeat, as at the CDRA's two
+    zeros).
+    """
+    U, s, Vt = jnp.linalg.svd(A, full_matrices=False)
+    keep = s > rcond * s[..., :1]
+    inv_s = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
+    L = jnp.swapaxes(Vt, -1, -2) * inv_s[..., None, :]
+    return L, s, U, Vt
+
+
+def _pinv_factor_jvp(rcond, primals, tangents):
+    (A,), (dA,) = primals, tangents
+    L, s, U, Vt = _pinv_factor_value(A, rcond)
+    t = _t
+    P = L @ t(U)  # A^+ (n, M)
+    dAt = t(dA)
+    dP = (
+        -(P @ dA) @ P
+        + (P @ t(P)) @ (dAt - (dAt @ A) @ P)
+        + ((dAt @ t(P)) - P @ (A @ (dAt @ t(P)))) @ P
+    )
+    ds = jnp.einsum("...ik,...ij,...kj->...k", U, dA, Vt)
+    return (L, s, U, Vt), (dP @ U, ds, jnp.zeros_like(U), jnp.zeros_like(Vt))
+
+
+def _t(x: Array) -> Array:
+    return jnp.swapaxes(x, -1, -2)
+
+
+_pinv_factor = jax.custom_jvp(_pinv_factor_value, nondiff_argnums=(1,))
+_pinv_factor.defjvp(_pinv_factor_jvp)
 
 
 @filter_jit
@@ -68,10 +170,17 @@ def whitened_jacobian(
     """Whitened stacked Jacobian ``D~ (6m, n)`` of Eq. 9 at ``arm`` for states ``q (m, dof)``.
 
     Whitening uses the tool positions of ``measured (m, 4, 4)`` when given (as the solvers do),
-    the model's otherwise. ``noise=None`` gives the paper's unweighted ``D``.
+    the model's otherwise. ``noise=None`` gives the paper's unweighted ``D``; its stds are
+    numbers or one per pose (``(m,)``).
+
+    Raises:
+        ValueError: (at trace time) ``q`` not ``(m, dof)``, ``measured`` not ``(m, 4, 4)``, or
+            noise stds that are neither numbers nor ``(m,)``.
     """
     dtype = jnp.asarray(arm.frames).dtype
     q = jnp.asarray(q, dtype)
+    _check_states(arm, q, "q")
+    _check_noise_and_measured(noise, measured, q.shape[:-1])
     tool, after = chain(arm.frames, module_poses(arm, q))
     D = calibration_jacobian(after)
     G = whitening(tool if measured is None else jnp.asarray(measured, dtype), noise)
@@ -88,14 +197,27 @@ class ParameterUncertainty(eqx.Module):
             mm rad, rad^2; ordered as ``arm.param_names``).
         singular_values: singular values of ``D~`` in decreasing order, ``(n,)`` (zero-padded).
         basis: right singular vectors as rows, ``(n, n)``; the first ``rank`` rows span the
-            identifiable subspace (the row space of ``D~``), the rest the null space.
+            identifiable subspace (the row space of ``D~``), the rest the null space. Carries no
+            gradient (it is not differentiable where singular values repeat).
         rank: numerical rank ``()``.
+        factor: square-root factor ``L = V_r S_r^-1 (n, n)``, ``covariance = L L^T`` (zero
+            columns past the rank); its derivative is that of ``L L^T`` (use it through Gram
+            products such as ``(D L)(D L)^T``, as :func:`pose_covariance` does).
     """
 
     covariance: Array
     singular_values: Array
     basis: Array
     rank: Array
+    factor: Array
+
+    @property
+    def null_space(self) -> Array:
+        """Rows spanning the null space of ``D~`` (what the poses do not identify), ``(n, n)``:
+        the rows of ``basis`` past ``rank``, the first ``rank`` rows zero."""
+        n = self.basis.shape[-1]
+        null = jnp.arange(n) >= self.rank[..., None]
+        return jnp.where(null[..., :, None], self.basis, 0.0)
 
     @property
     def row_space_projector(self) -> Array:
@@ -105,29 +227,43 @@ class ParameterUncertainty(eqx.Module):
         Vr = jnp.where(keep[..., :, None], self.basis, 0.0)
         return jnp.einsum("...ki,...kj->...ij", Vr, Vr)
 
-    def null_fraction(self, directions: ArrayLike) -> Array:
-        """``|P_null c| / |c|`` for each row ``c`` of ``directions (..., k, n)``: ``(..., k)``."""
+    def _directions(self, directions: ArrayLike) -> tuple[Array, bool]:
         c = jnp.asarray(directions, self.covariance.dtype)
+        _check_directions(c, self.covariance.shape[-1])
+        return (c[None, :], True) if c.ndim == 1 else (c, False)
+
+    def null_fraction(self, directions: ArrayLike) -> Array:
+        """``|P_null c| / |c|`` for each row ``c`` of ``directions (..., k, n)``: ``(..., k)``
+        (a single direction ``(n,)``: ``(...)``)."""
+        c, single = self._directions(directions)
         Pc = jnp.einsum("...ij,...kj->...ki", self.row_space_projector, c)
         norm = jnp.linalg.norm(c, axis=-1)
-        return jnp.linalg.norm(c - Pc, axis=-1) / jnp.where(norm > 0, norm, 1.0)
+        frac = jnp.linalg.norm(c - Pc, axis=-1) / jnp.where(norm > 0, norm, 1.0)
+        return frac[..., 0] if single else frac
 
     def identifiable(self, directions: ArrayLike, tol: float = IDENTIFIABLE_TOL) -> Array:
-        """Whether each row of ``directions (..., k, n)`` lies in the identifiable subspace."""
+        """Whether each row of ``directions (..., k, n)`` (or the one ``(n,)``) lies in the
+        identifiable subspace."""
         return self.null_fraction(directions) <= tol
 
     def bound(self, directions: ArrayLike, tol: float = IDENTIFIABLE_TOL) -> Array:
         """Cramer-Rao bound ``c^T F^+ c`` on ``c^T X`` per row ``c``; ``inf`` if not identifiable.
 
         Args:
-            directions: ``(..., k, n)`` linear combinations of the parameters.
+            directions: ``(..., k, n)`` linear combinations of the parameters, one per row, or
+                a single one ``(n,)``.
 
         Returns:
-            ``(..., k)`` variances (squared units of ``c^T X``).
+            ``(..., k)`` variances (squared units of ``c^T X``); ``(...)`` for a single
+            direction.
+
+        Raises:
+            ValueError: ``directions`` whose last axis is not ``n`` (or a scalar).
         """
-        c = jnp.asarray(directions, self.covariance.dtype)
+        c, single = self._directions(directions)
         var = jnp.einsum("...ki,...ij,...kj->...k", c, self.covariance, c)
-        return jnp.where(self.identifiable(c, tol), var, jnp.inf)
+        out = jnp.where(self.identifiable(c, tol), var, jnp.inf)
+        return out[..., 0] if single else out
 
 
 @filter_jit
@@ -141,9 +277,14 @@ def parameter_covariance(
 ) -> ParameterUncertainty:
     """Covariance of the identified frame errors for the pose set ``q (m, dof)``.
 
-    ``F^+ = (D~^T D~)^+`` (see the module docstring), with ``D~`` whitened by ``noise`` and the
-    singular values below ``rcond * s_max`` dropped, as in the solvers' Eq. 10 step.
-    jit/vmap-able (batch over ``q`` with ``vmap``).
+    ``F^+ = (D~^T D~)^+`` (see the module docstring), with ``D~`` whitened by ``noise`` (stds
+    numbers or ``(m,)``) and the singular values below ``rcond * s_max`` dropped, as in the
+    solvers' Eq. 10 step. An empty pose set (``m = 0``) has rank 0: nothing is identified.
+    jit/vmap-able (batch over ``q`` with ``vmap``); differentiable at constant rank (module
+    docstring).
+
+    Raises:
+        ValueError: no noise model, or the shape errors of :func:`whitened_jacobian`.
     """
     if noise is None:
         raise ValueError(
@@ -154,13 +295,15 @@ def parameter_covariance(
     n = D.shape[-1]
     if D.shape[-2] < n:  # fewer rows than parameters: pad so that the SVD gives all n directions
         D = jnp.concatenate([D, jnp.zeros(D.shape[:-2] + (n - D.shape[-2], n), D.dtype)], -2)
-    rcond = default_rcond(D.dtype) if rcond is None else rcond
-    _, s, Vt = jnp.linalg.svd(D, full_matrices=False)
-    keep = s > rcond * s[..., :1]
-    inv_s2 = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0) ** 2, 0.0)
-    cov = jnp.einsum("...ki,...k,...kj->...ij", Vt, inv_s2, Vt)
+    rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
+    L, s, _, Vt = _pinv_factor(D, rcond)
+    keep = jax.lax.stop_gradient(s > rcond * s[..., :1])
     return ParameterUncertainty(
-        covariance=cov, singular_values=s, basis=Vt, rank=jnp.sum(keep, axis=-1)
+        covariance=L @ _t(L),
+        singular_values=s,
+        basis=jax.lax.stop_gradient(Vt),
+        rank=jnp.sum(keep, axis=-1),
+        factor=L,
     )
 
 
@@ -179,13 +322,25 @@ def cramer_rao_bound(
 
     For Gaussian measurement noise the whitened model is linear-Gaussian to first order and the
     bound on an identifiable combination is ``c^T (D~^T D~)^+ c``; combinations with a
-    null-space component (relative size above ``tol``) get ``inf``.
+    null-space component (relative size above ``tol``) get ``inf``. A single direction ``(n,)``
+    gives a scalar ``()``. ``n = arm.n_params``, ordered as ``arm.param_names``.
+
+    Raises:
+        ValueError: ``directions`` not ``(k, n)`` or ``(n,)``, or the errors of
+            :func:`parameter_covariance`.
     """
+    _check_directions(jnp.asarray(directions), arm.n_params)
     return parameter_covariance(arm, q, noise, measured, rcond=rcond).bound(directions, tol)
 
 
 class PoseCovariance(eqx.Module):
     """First-order covariance of predicted tool poses at ``k`` states.
+
+    A pose whose position (orientation) error the calibration does not bound, because a
+    direction the poses left unidentified moves it (module docstring), has its whole position
+    (orientation) block, and its whole twist block, set to ``inf``: its variances are unbounded
+    (the off-diagonal ``inf`` only marks the block). The RMS values and the expected ``dp``
+    (``dR``) over poses with such a block are then ``inf`` too; :attr:`bounded` says which.
 
     Attributes:
         twist: covariance of the world-frame pose-error twist ``(v, w)``, ``(k, 6, 6)``.
@@ -198,52 +353,121 @@ class PoseCovariance(eqx.Module):
     rotation: Array
 
     @property
+    def bounded(self) -> Array:
+        """Per pose, whether both the position and the orientation covariance are finite:
+        ``(k,)`` bool."""
+        return jnp.isfinite(_trace(self.position)) & jnp.isfinite(_trace(self.rotation))
+
+    @property
     def position_rms(self) -> Array:
-        """Expected RMS position error per pose, ``sqrt(trace)`` (mm): ``(k,)``."""
-        return jnp.sqrt(jnp.trace(self.position, axis1=-2, axis2=-1))
+        """Expected RMS position error per pose, ``sqrt(trace)`` (mm): ``(k,)``; ``inf`` where
+        unbounded."""
+        return _sqrt(_trace(self.position))
 
     @property
     def rotation_rms(self) -> Array:
-        """Expected RMS orientation error angle per pose (rad): ``(k,)``."""
-        return jnp.sqrt(jnp.trace(self.rotation, axis1=-2, axis2=-1))
+        """Expected RMS orientation error angle per pose (rad): ``(k,)``; ``inf`` where
+        unbounded."""
+        return _sqrt(_trace(self.rotation))
 
     @property
     def expected_delta_p(self) -> Array:
-        """``sqrt(E[dp^2])`` of Eq. 20 over these poses, model against the true arm (mm)."""
-        return jnp.sqrt(jnp.mean(jnp.trace(self.position, axis1=-2, axis2=-1), axis=-1))
+        """``sqrt(E[dp^2])`` of Eq. 20 over these poses, model against the true arm (mm);
+        ``inf`` when any pose's position error is unbounded."""
+        return _sqrt(jnp.mean(_trace(self.position), axis=-1))
 
     @property
     def expected_delta_R(self) -> Array:
-        """``sqrt(E[dR^2])`` of Eq. 21 over these poses, model against the true arm (rad)."""
-        return jnp.sqrt(jnp.mean(jnp.trace(self.rotation, axis1=-2, axis2=-1), axis=-1))
+        """``sqrt(E[dR^2])`` of Eq. 21 over these poses, model against the true arm (rad);
+        ``inf`` when any pose's orientation error is unbounded."""
+        return _sqrt(jnp.mean(_trace(self.rotation), axis=-1))
+
+
+def _trace(C: Array) -> Array:
+    return jnp.trace(C, axis1=-2, axis2=-1)
+
+
+def _sqrt(x: Array) -> Array:
+    """``sqrt`` of variances (>= 0) with a finite gradient at 0 (double where); a NaN stays
+    NaN (``x * 0``)."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), x * 0.0)
+
+
+def _unbounded(rows: Array, null: Array, tol: float) -> Array:
+    """``|rows N^T|_F > tol |rows|_F`` per pose: ``rows (..., k, a, n)``, ``null (..., n, n)``
+    (null-space rows, zero padded, already broadcast as ``(..., 1, n, n)`` if batched)."""
+    num = jnp.sum(jnp.square(rows @ _t(null)), axis=(-2, -1))
+    den = jnp.sum(jnp.square(rows), axis=(-2, -1))
+    return num > tol**2 * den
 
 
 @filter_jit
-def pose_covariance(arm: Arm, q_eval: ArrayLike, covariance: ArrayLike) -> PoseCovariance:
-    """Propagate a parameter covariance ``(n, n)`` to the tool poses at ``q_eval (k, dof)``.
+def pose_covariance(
+    arm: Arm,
+    q_eval: ArrayLike,
+    covariance: ArrayLike | ParameterUncertainty,
+    *,
+    tol: float = IDENTIFIABLE_TOL,
+) -> PoseCovariance:
+    """Propagate a parameter covariance to the tool poses at ``q_eval (k, dof)``.
 
     Uses the unwhitened Jacobian ``D(q)`` of Eq. 8 at ``arm``: twist covariance
     ``D C D^T``; position error ``[I, -hat(p)] dT`` with ``p`` the model tool position.
-    Computed from a square-root factor ``C = L L^T`` (symmetric eigendecomposition, rounding
-    negatives clipped) as Gram matrices ``(D L)(D L)^T``, so variances are never negative: for a
-    nearly singular ``C`` (poses nearly the same) ``D C D^T`` formed directly can cancel to a
-    negative trace and a NaN RMS.
+    Computed from a square-root factor ``C = L L^T`` as Gram matrices ``(D L)(D L)^T``, so
+    variances are never negative: for a nearly singular ``C`` (poses nearly the same)
+    ``D C D^T`` formed directly can cancel to a negative trace and a NaN RMS.
+
+    Args:
+        arm: model to linearise at.
+        q_eval: states ``(k, dof)`` at which to predict.
+        covariance: the :class:`ParameterUncertainty` of a calibration
+            (:func:`parameter_covariance`): its null space is unidentified, so a pose whose
+            position (orientation) rows ``R`` of ``D(q)`` see it, ``|R N| > tol |R|``, gets an
+            ``inf`` block (:class:`PoseCovariance`); its factor ``L`` is used, so the result is
+            differentiable (module docstring). Or a plain covariance matrix ``(n, n)`` (mm^2,
+            mm rad, rad^2), taken at face value: zero variance means known exactly, never
+            ``inf``; factored by a symmetric eigendecomposition (rounding negatives clipped),
+            whose derivative is undefined where eigenvalues repeat (e.g. two zeros): to
+            differentiate, pass the :class:`ParameterUncertainty`.
+        tol: relative size of a null-space component that counts as seen (default
+            :data:`IDENTIFIABLE_TOL`, ``1e-8``; the CDRA's structural directions give
+            below ``1e-15``).
+
+    Raises:
+        ValueError: (at trace time) ``q_eval`` not ``(k, dof)``.
     """
     dtype = jnp.asarray(arm.frames).dtype
     q_eval = jnp.asarray(q_eval, dtype)
+    _check_states(arm, q_eval, "q_eval")
     tool, after = chain(arm.frames, module_poses(arm, q_eval))
     D = calibration_jacobian(after)  # (k, 6, n)
-    C = jnp.asarray(covariance, dtype)
-    lam, U = jnp.linalg.eigh(0.5 * (C + jnp.swapaxes(C, -1, -2)))
-    L = U * jnp.sqrt(jnp.clip(lam, 0.0, None))[..., None, :]  # C = L L^T
-    DL = D @ L[..., None, :, :] if L.ndim > 2 else D @ L  # (k, 6, n)
-    twist = DL @ jnp.swapaxes(DL, -1, -2)
+    null = None
+    if isinstance(covariance, ParameterUncertainty):
+        L = covariance.factor.astype(dtype)
+        null = jax.lax.stop_gradient(covariance.null_space).astype(dtype)
+    else:
+        C = jnp.asarray(covariance, dtype)
+        lam, U = jnp.linalg.eigh(0.5 * (C + _t(C)))
+        L = U * _sqrt(lam)[..., None, :]  # C = L L^T
+    if L.ndim > 2:  # a batch of covariances: broadcast against the k poses
+        L = L[..., None, :, :]
+        null = None if null is None else null[..., None, :, :]
+    DL = D @ L  # (k, 6, n)
+    twist = DL @ _t(DL)
     p = lie.translation(tool)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), p.shape[:-1] + (3, 3))
     H = jnp.concatenate([eye, -lie.hat3(p)], axis=-1)  # (k, 3, 6)
     HDL = H @ DL
-    position = HDL @ jnp.swapaxes(HDL, -1, -2)
-    return PoseCovariance(twist=twist, position=position, rotation=twist[..., 3:, 3:])
+    position = HDL @ _t(HDL)
+    rotation = twist[..., 3:, 3:]
+    if null is not None:
+        bad_p = _unbounded(H @ D, null, tol)[..., None, None]
+        bad_r = _unbounded(D[..., 3:, :], null, tol)[..., None, None]
+        position = jnp.where(bad_p, jnp.inf, position)
+        rotation = jnp.where(bad_r, jnp.inf, rotation)
+        twist = jnp.where(bad_p | bad_r, jnp.inf, twist)
+    return PoseCovariance(twist=twist, position=position, rotation=rotation)
 
 
 @filter_jit
@@ -255,15 +479,19 @@ def predicted_pose_covariance(
     measured: ArrayLike | None = None,
     *,
     rcond: float | None = None,
+    tol: float = IDENTIFIABLE_TOL,
 ) -> PoseCovariance:
     """Covariance of the calibrated model's tool poses at ``q_eval`` (default: at ``q``).
 
-    ``q (m, dof)`` are the calibration states, ``noise`` the measuring device's noise. The
-    expected held-out accuracy of a calibration from ``q`` is
-    ``predicted_pose_covariance(arm, q, noise, q_heldout).expected_delta_p``.
+    ``q (m, dof)`` are the calibration states, ``noise`` the measuring device's noise (stds
+    numbers or ``(m,)``), ``q_eval (k, dof)``. The expected held-out accuracy of a calibration
+    from ``q`` is ``predicted_pose_covariance(arm, q, noise, q_heldout).expected_delta_p`` (mm).
+    It is ``inf`` when ``q`` leaves a direction unidentified that moves the tool at a state of
+    ``q_eval`` (rank-deficient sets: too few, repeated or empty; see :func:`pose_covariance`
+    and ``tol``), finite and differentiable otherwise.
     """
     unc = parameter_covariance(arm, q, noise, measured, rcond=rcond)
-    return pose_covariance(arm, q if q_eval is None else q_eval, unc.covariance)
+    return pose_covariance(arm, q if q_eval is None else q_eval, unc, tol=tol)
 
 
 def normal_quantile(confidence: float) -> float:
@@ -288,9 +516,13 @@ class UncertaintyReport:
         covariance: ``(n, n)`` parameter covariance ``F^+``.
         rank, n_poses: rank of ``D~`` and the number of poses.
         confidence, z: the interval level and its normal quantile.
-        noise: ``(position_mm, rotation_rad)``.
-        pose_position_rms, pose_rotation_rms: per evaluation pose, expected RMS errors (mm, rad).
-        expected_delta_p, expected_delta_R: ``sqrt(E[dp^2])``, ``sqrt(E[dR^2])`` over them.
+        noise: ``(position_mm, rotation_rad)``, each a float or, for per-pose stds, an ``(m,)``
+            array.
+        pose_position_rms, pose_rotation_rms: per evaluation pose, expected RMS errors (mm, rad);
+            ``inf`` where the calibration poses leave a direction unidentified that moves the
+            tool there (:func:`pose_covariance`): the error is not bounded by the noise.
+        expected_delta_p, expected_delta_R: ``sqrt(E[dp^2])``, ``sqrt(E[dR^2])`` over them
+            (``inf`` when any pose's is).
         unidentifiable: the unidentifiable directions as text (from :mod:`.identifiability`).
         involved_in: per parameter, the unidentifiable directions it enters.
         weights: per-pose IRLS weights of a robust fit the covariance uses, or ``None``.
@@ -305,7 +537,7 @@ class UncertaintyReport:
     n_poses: int
     confidence: float
     z: float
-    noise: tuple[float, float]
+    noise: tuple[float | np.ndarray, float | np.ndarray]
     pose_position_rms: np.ndarray
     pose_rotation_rms: np.ndarray
     expected_delta_p: float
@@ -324,8 +556,19 @@ class UncertaintyReport:
         h = self.z * float(self.std[i])
         return (c - h, c + h)
 
+    @property
+    def unbounded_poses(self) -> np.ndarray:
+        """Indices of the evaluation poses whose predicted error is unbounded (``inf``)."""
+        return np.flatnonzero(
+            ~(np.isfinite(self.pose_position_rms) & np.isfinite(self.pose_rotation_rms))
+        )
+
     def to_dict(self) -> dict:
-        """JSON-ready mapping; see the README fragment for the layout."""
+        """JSON-ready mapping; see the README fragment for the layout.
+
+        Unbounded (``inf``) predicted errors are written as ``null`` (JSON has no infinity),
+        with ``predicted_pose.bounded`` false and a ``note``.
+        """
         params = {}
         for i, name in enumerate(self.param_names):
             entry: dict = {
@@ -344,6 +587,7 @@ class UncertaintyReport:
                     "to " + "; ".join(f"({d})" for d in self.involved_in[i]) + " are"
                 )
             params[name] = entry
+        unbounded = self.unbounded_poses
         return {
             "method": "first-order covariance of the minimum-norm estimate, (D~^T D~)^+ "
             "(= Cramer-Rao bound on identifiable combinations)"
@@ -353,7 +597,10 @@ class UncertaintyReport:
             "s / sqrt(w_i)",
             "weights": None if self.weights is None else [float(w) for w in self.weights],
             "units": "mm for v components, rad for w components",
-            "noise": {"position_mm": self.noise[0], "rotation_rad": self.noise[1]},
+            "noise": {
+                "position_mm": _json_std(self.noise[0]),
+                "rotation_rad": _json_std(self.noise[1]),
+            },
             "confidence": self.confidence,
             "rank": int(self.rank),
             "n_params": len(self.param_names),
@@ -362,10 +609,12 @@ class UncertaintyReport:
             "unidentifiable": list(self.unidentifiable),
             "predicted_pose": {
                 "at": self.eval_states,
-                "expected_delta_p_mm": float(self.expected_delta_p),
-                "expected_delta_R_rad": float(self.expected_delta_R),
-                "position_rms_mm": [float(v) for v in self.pose_position_rms],
-                "rotation_rms_rad": [float(v) for v in self.pose_rotation_rms],
+                "bounded": not unbounded.size,
+                **({"note": self._unbounded_note()} if unbounded.size else {}),
+                "expected_delta_p_mm": _json_float(self.expected_delta_p),
+                "expected_delta_R_rad": _json_float(self.expected_delta_R),
+                "position_rms_mm": [_json_float(v) for v in self.pose_position_rms],
+                "rotation_rms_rad": [_json_float(v) for v in self.pose_rotation_rms],
             },
             "covariance": {
                 "param_names": list(self.param_names),
@@ -379,7 +628,7 @@ class UncertaintyReport:
         head = f"{'parameter':<16} {'estimate':>12} {'std':>11}  {pct} interval"
         lines = [
             f"uncertainty: rank {self.rank} of {len(self.param_names)} from {self.n_poses} poses, "
-            f"noise {self.noise[0]:g} mm / {self.noise[1]:g} rad"
+            f"noise {_text_std(self.noise[0])} mm / {_text_std(self.noise[1])} rad"
             + ("" if self.weights is None else ", with the robust fit's final weights"),
             head,
             "-" * len(head) + "-" * 14,
@@ -397,7 +646,35 @@ class UncertaintyReport:
             f"expected accuracy at {self.eval_states}: dp {self.expected_delta_p:.4g} mm, "
             f"dR {self.expected_delta_R:.4g} rad (RMS, model vs true arm)"
         )
+        if self.unbounded_poses.size:
+            lines.append(self._unbounded_note())
         return "\n".join(lines)
+
+    def _unbounded_note(self) -> str:
+        k = self.unbounded_poses.size
+        return (
+            f"unbounded (inf) at {k} of {self.pose_position_rms.size} evaluation poses: the "
+            f"calibration poses (rank {self.rank} of {len(self.param_names)}) leave parameter "
+            "combinations unidentified (or below the rank cut-off) that move the tool there, so "
+            "the error is not bounded by the noise; add poses that move those combinations"
+        )
+
+
+def _json_float(v) -> float | None:
+    """``float(v)``, or ``None`` (JSON ``null``) for an unbounded (infinite) value."""
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _json_std(v) -> float | list[float]:
+    return [float(x) for x in v] if np.ndim(v) else float(v)
+
+
+def _text_std(v) -> str:
+    if not np.ndim(v):
+        return f"{float(v):g}"
+    lo, hi = float(np.min(v)), float(np.max(v))
+    return f"{lo:g}" if lo == hi else f"{lo:g}-{hi:g} (per pose)"
 
 
 def analyze_uncertainty(
@@ -417,11 +694,13 @@ def analyze_uncertainty(
     Args:
         arm: model to linearise at (the calibrated arm for a finished calibration).
         q: calibration states ``(m, dof)``.
-        noise: the measuring device's noise.
+        noise: the measuring device's noise; each std a number or one per pose ``(m,)``.
         measured: measured tool poses ``(m, 4, 4)`` (whitening; model poses otherwise).
         estimate: identified errors (``solution.errors``, ``(K+1, 6)`` or flat), centre of the
             intervals; without it the intervals are centred on 0 (half-widths).
-        q_eval: states at which to predict the tool-pose accuracy (default: ``q``).
+        q_eval: states ``(k, dof)`` at which to predict the tool-pose accuracy (default:
+            ``q``). The prediction is ``inf`` at states where ``q`` leaves a direction
+            unidentified that moves the tool (:func:`pose_covariance`).
         confidence: interval level (0.95: +-1.96 std).
         rcond: singular-value cut-off (default: the solvers').
         weights: ``(m,)`` final IRLS weights of a robust fit (``RobustSolution.weights``):
@@ -429,8 +708,10 @@ def analyze_uncertainty(
             least squares.
 
     Raises:
-        ValueError: no noise model, a bad confidence, states of the wrong shape or not finite,
-            or weights that are not ``m`` finite non-negative numbers with one positive.
+        ValueError: no noise model, noise stds that are not positive finite numbers or ``(m,)``
+            arrays of them, a bad confidence, states (``q``, ``q_eval``) of the wrong shape or
+            not finite, ``measured`` not ``(m, 4, 4)``, or weights that are not ``m`` finite
+            non-negative numbers with one positive.
     """
     if noise is None:
         raise ValueError("analyze_uncertainty needs a NoiseModel (position_mm, rotation_rad)")
@@ -442,6 +723,34 @@ def analyze_uncertainty(
             f"got {q.shape}"
         )
     require_finite_states(arm, q)
+    stds = []
+    for name in ("position_mm", "rotation_rad"):
+        v = np.asarray(getattr(noise, name), dtype=float)
+        if v.shape not in ((), (q.shape[0],)):
+            raise ValueError(
+                f"noise.{name} must be a number or one std per pose, shape (m,) = "
+                f"({q.shape[0]},), got shape {v.shape}"
+            )
+        bad = np.flatnonzero(~(np.isfinite(v) & (v > 0)).reshape(-1))
+        if bad.size:
+            raise ValueError(
+                f"noise.{name} must be positive and finite, got {v.reshape(-1)[bad[0]]!r}"
+                + (f" for pose {bad[0]}" if v.ndim else "")
+            )
+        stds.append(float(v) if v.ndim == 0 else v)
+    if measured is not None and np.shape(measured) != (q.shape[0], 4, 4):
+        raise ValueError(
+            f"measured must hold one tool pose per state of q, shape (m, 4, 4) = "
+            f"({q.shape[0]}, 4, 4), got {np.shape(measured)}"
+        )
+    if q_eval is not None:
+        q_eval = np.asarray(q_eval, dtype=float)
+        if q_eval.ndim != 2 or q_eval.shape[1] != arm.dof:
+            raise ValueError(
+                f"q_eval must have shape (k, {arm.dof}) with columns {arm.state_names}, "
+                f"got {q_eval.shape}"
+            )
+        require_finite_states(arm, q_eval, "q_eval")
     n = arm.n_params
     est = None
     if estimate is not None:
@@ -483,7 +792,7 @@ def analyze_uncertainty(
         )
         for i in range(n)
     )
-    pc = pose_covariance(arm, q if q_eval is None else q_eval, unc.covariance)
+    pc = pose_covariance(arm, q if q_eval is None else q_eval, unc)
     return UncertaintyReport(
         param_names=arm.param_names,
         estimate=est,
@@ -494,14 +803,14 @@ def analyze_uncertainty(
         n_poses=q.shape[0],
         confidence=float(confidence),
         z=z,
-        noise=(float(noise.position_mm), float(noise.rotation_rad)),
+        noise=(stds[0], stds[1]),
         pose_position_rms=np.asarray(pc.position_rms),
         pose_rotation_rms=np.asarray(pc.rotation_rms),
         expected_delta_p=float(pc.expected_delta_p),
         expected_delta_R=float(pc.expected_delta_R),
         eval_states="the calibration states"
         if q_eval is None
-        else f"{np.shape(q_eval)[0]} given states",
+        else f"{q_eval.shape[0]} given states",
         unidentifiable=ident_report.unidentifiable,
         involved_in=involved,
         weights=w,

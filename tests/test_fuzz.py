@@ -572,7 +572,10 @@ def test_uncertainty_is_finite_or_names_the_bad_state(q, levels, weights):
         assert re.search(r"module states must be finite: row \d+, column '[a-z.]+' is", str(e))
         return
     assert np.all(np.isfinite(r.covariance)) and np.all(r.std >= 0) and 0 <= r.rank <= 24
-    assert np.isfinite(r.expected_delta_p) and np.isfinite(r.expected_delta_R)
+    # inf where a pose sees a direction the set leaves unidentified (e.g. a noise ratio of 5e9
+    # mm/rad, where the rank cut-off drops a real direction); never NaN.
+    for v in (r.expected_delta_p, r.expected_delta_R):
+        assert v >= 0 and (np.isfinite(v) or len(r.unbounded_poses) > 0)
     json.dumps(r.to_dict(), allow_nan=False)  # the result file's entry has no NaN or inf
     assert "nan" not in r.summary()
 
@@ -593,7 +596,7 @@ def test_pose_selection_picks_distinct_poses_or_names_the_bad_state(pool, levels
     assert len(set(idx)) == 5 and all(0 <= i < 24 for i in idx)
     np.testing.assert_array_equal(sel.states, pool[sel.indices])
     assert 0 <= sel.rank <= 24 and np.isfinite(sel.o1) and sel.o1 >= 0
-    assert np.isfinite(sel.prediction_rms) and sel.prediction_rms >= 0
+    assert sel.prediction_rms >= 0  # inf (never NaN) where the set leaves the reference unbounded
     assert np.isfinite(sel.log_det) or sel.rank == 0
 
 

@@ -127,6 +127,50 @@ def test_bad_arguments(cdra, pool):
         select_from_pool(cdra, pool[:, :3], 5, NOISE)
 
 
+def test_pose_count_must_be_an_integer_of_at_least_four(cdra, pool):
+    """m < 4 (the paper's lower bound) used to give a finite garbage prediction, and m = 2.5
+    silently selected 2; both are refused before anything is computed."""
+    for m in (3, 0, 2.5, 5.0, True, "5"):
+        with pytest.raises(ValueError, match=r"m must be (at least 4|an integer)"):
+            select_from_pool(cdra, pool, m, NOISE)
+        with pytest.raises(ValueError, match=r"m must be (at least 4|an integer)"):
+            select_poses(cdra, m, NOISE, pool_size=20)
+        with pytest.raises(ValueError, match=r"m must be (at least 4|an integer)"):
+            prediction_bound(cdra, pool, m, NOISE)
+    with pytest.raises(ValueError, match="max_exchanges must be at least 0"):
+        select_from_pool(cdra, pool, 5, NOISE, max_exchanges=-1)
+    with pytest.raises(ValueError, match="pool_size must be an integer"):
+        select_poses(cdra, 5, NOISE, pool_size=20.5)
+    with pytest.raises(ValueError, match=r"pool_size must be at least 5"):
+        select_poses(cdra, 5, NOISE, pool_size=4)
+
+
+def test_prediction_bound_arguments(cdra, pool):
+    with pytest.raises(ValueError, match=r"noise=NoiseModel"):
+        prediction_bound(cdra, pool, 7, None)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="iterations must be"):
+            prediction_bound(cdra, pool, 7, NOISE, iterations=bad)
+
+
+def test_unbounded_prediction_where_the_pool_identifies_too_little(cdra, pool):
+    """A pool of one repeated state identifies only that tool pose (rank 6): its error is
+    bounded there (4 poses: position covariance s_p^2 / 4 I, exact), unbounded (inf) at other
+    reference states, for the selection's prediction and for the lower bound alike."""
+    same = np.repeat(pool[:1], 6, axis=0)
+    here = 0.08 * np.sqrt(3 / 4)
+    sel = select_from_pool(cdra, same, 4, NOISE, criterion="d-opt", exchange=False)
+    assert sel.rank == 6 and sel.prediction_rms == pytest.approx(here, rel=1e-8)
+    elsewhere = select_from_pool(
+        cdra, same, 4, NOISE, criterion="d-opt", exchange=False, reference=pool[1:4]
+    )
+    assert np.isinf(elsewhere.prediction_rms)
+    b = prediction_bound(cdra, same, 4, NOISE, iterations=10)
+    assert b.lower == pytest.approx(here, rel=1e-8) and b.approximate == pytest.approx(here)
+    b = prediction_bound(cdra, same, 4, NOISE, reference=pool[1:4], iterations=10)
+    assert np.isinf(b.lower) and np.isinf(b.approximate)
+
+
 def test_plan_poses_cli(cdra, tmp_path, capsys):
     out = tmp_path / "plan.csv"
     argv = ["--count", "6", "--pool", "300", "--seed", "4", "--out", str(out)]

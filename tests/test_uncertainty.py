@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
+from scipy.spatial.transform import Rotation
 
 from cdra_jax import NoiseModel, apply_frame_errors, calibrate_paper, lie, tool_pose
 from cdra_jax.calibration import whitening
@@ -139,6 +140,129 @@ def test_bad_input(cdra, poses):
         analyze_uncertainty(cdra, poses[:, :5], NOISE)
     with pytest.raises(ValueError, match="24 values"):
         analyze_uncertainty(cdra, poses, NOISE, estimate=np.zeros(5))
+
+
+def test_prediction_unbounded_where_the_poses_leave_directions_unidentified(cdra, poses):
+    """A rank-deficient pose set cannot bound the error at states it does not pin down: inf,
+    not the pseudo-inverse's finite number. The CDRA's two structural directions (move no
+    tool pose) never count: full-rank sets predict the same finite values as before."""
+    q_eval = sample_states(jax.random.PRNGKey(11), cdra, 3)
+    same = jnp.repeat(poses[:1], 8, axis=0)  # one state measured 8 times: rank 6 of 24
+    pc = predicted_pose_covariance(cdra, same, NOISE, q_eval)
+    assert np.isinf(pc.expected_delta_p) and np.isinf(pc.expected_delta_R)
+    assert np.all(np.isinf(pc.position_rms)) and np.all(np.isinf(pc.twist))
+    assert not np.any(pc.bounded)
+    # at the repeated state itself the tool pose is the mean of 8 measurements: whitened
+    # residual (dp / s_p, w / s_r), so the position covariance is s_p^2 / 8 I (exact)
+    own = predicted_pose_covariance(cdra, same, NOISE, poses[:1])
+    assert bool(own.bounded[0])
+    assert float(own.position_rms[0]) == pytest.approx(0.08 * np.sqrt(3 / 8), rel=1e-8)
+    assert float(own.rotation_rms[0]) == pytest.approx(1e-3 * np.sqrt(3 / 8), rel=1e-8)
+    # no poses at all: nothing identified, nothing bounded
+    assert np.isinf(predicted_pose_covariance(cdra, poses[:0], NOISE, q_eval).expected_delta_p)
+    # a full set (rank 22) at the nominal and at a calibrated model: finite, and equal to the
+    # face-value propagation of its covariance (the structural null space is ~1e-16 relative)
+    frames = np.array(cdra.frames)  # a calibrated-like model: every frame off by ~0.02 mm, rad
+    small = 0.02 * np.sin(np.arange(frames.shape[0] * 6).reshape(-1, 2, 3))
+    frames[:, :3, :3] = Rotation.from_rotvec(small[:, 1]).as_matrix() @ frames[:, :3, :3]
+    frames[:, :3, 3] += small[:, 0]
+    for arm in (cdra, cdra.with_frames(jnp.asarray(frames))):
+        unc = parameter_covariance(arm, poses, NOISE)
+        assert int(unc.rank) == 22
+        full = predicted_pose_covariance(arm, poses, NOISE, q_eval)
+        plain = pose_covariance(arm, q_eval, unc.covariance)
+        assert np.all(np.asarray(full.bounded))
+        for got, want in ((full.position, plain.position), (full.rotation, plain.rotation)):
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
+
+
+def test_report_marks_unbounded_prediction(cdra, poses):
+    """The report says so, and stays JSON-safe (null, no Infinity)."""
+    q_eval = sample_states(jax.random.PRNGKey(11), cdra, 3)
+    same = jnp.repeat(poses[:1], 8, axis=0)
+    rep = analyze_uncertainty(cdra, same, NOISE, q_eval=q_eval)
+    assert np.isinf(rep.expected_delta_p) and list(rep.unbounded_poses) == [0, 1, 2]
+    pred = json.loads(json.dumps(rep.to_dict(), allow_nan=False))["predicted_pose"]
+    assert pred["bounded"] is False and pred["expected_delta_p_mm"] is None
+    assert pred["position_rms_mm"] == [None] * 3 and "unbounded" in pred["note"]
+    assert "unbounded (inf) at 3 of 3" in rep.summary()
+    assert uncertainty_dict(cdra, poses, NOISE)["predicted_pose"]["bounded"] is True
+
+
+def test_predicted_accuracy_gradients(cdra, poses):
+    """Differentiable despite the two zero singular values: jacfwd = jacrev = central finite
+    differences; at an unbounded (inf) prediction the gradient is finite too."""
+    q_eval = sample_states(jax.random.PRNGKey(11), cdra, 3)
+
+    def f(q):
+        pc = predicted_pose_covariance(cdra, q, NOISE, q_eval)
+        return jnp.stack([pc.expected_delta_p, 1e2 * pc.expected_delta_R, pc.position[1, 0, 2]])
+
+    q0 = jnp.asarray(poses)
+    jacrev = jax.jit(jax.jacrev(f))
+    J_rev = np.asarray(jacrev(q0))
+    J_fwd = np.asarray(jax.jit(jax.jacfwd(f))(q0))
+    assert np.all(np.isfinite(J_rev)) and np.abs(J_rev).max() > 0
+    np.testing.assert_allclose(J_rev, J_fwd, rtol=1e-8, atol=1e-9 * np.abs(J_rev).max())
+    fj = jax.jit(f)
+    rng = np.random.default_rng(1)
+    for _ in range(2):
+        v = rng.normal(size=q0.shape)
+        h = 1e-5
+        fd = (np.asarray(fj(q0 + h * v)) - np.asarray(fj(q0 - h * v))) / (2 * h)
+        np.testing.assert_allclose(
+            fd, np.einsum("aij,ij->a", J_rev, v), rtol=1e-5, atol=1e-9 * np.abs(fd).max()
+        )
+    same = jnp.repeat(q0[:1], 8, axis=0)
+    assert np.all(np.isinf(np.asarray(fj(same))))
+    assert np.all(np.isfinite(np.asarray(jacrev(same))))
+
+
+def test_per_pose_noise_and_measured_shape(cdra, poses):
+    """(m,) noise stds: pose i with noise (s_p, s_r) / sqrt(w_i) is the robust-weights form
+    with weights w_i; equal stds are the scalar model. Wrong shapes name the argument."""
+    w = np.linspace(0.2, 1.0, len(poses))
+    per_pose = NoiseModel(0.08 / np.sqrt(w), 1e-3 / np.sqrt(w))
+    a = analyze_uncertainty(cdra, poses, per_pose)
+    b = analyze_uncertainty(cdra, poses, NOISE, weights=w)
+    scale = np.abs(b.covariance).max()
+    np.testing.assert_allclose(a.covariance, b.covariance, atol=1e-10 * scale)
+    assert a.expected_delta_p == pytest.approx(b.expected_delta_p, rel=1e-9)
+    c = analyze_uncertainty(cdra, poses, NoiseModel(jnp.full(len(poses), 0.08), 1e-3))
+    d = analyze_uncertainty(cdra, poses, NOISE)
+    np.testing.assert_allclose(c.std, d.std, rtol=1e-10)
+    noise = json.loads(json.dumps(a.to_dict(), allow_nan=False))["noise"]
+    assert noise["position_mm"] == pytest.approx(list(0.08 / np.sqrt(w)))
+    assert "(per pose)" in a.summary().splitlines()[0]
+    with pytest.raises(ValueError, match=r"noise\.position_mm .*\(8,\), got shape \(5,\)"):
+        analyze_uncertainty(cdra, poses, NoiseModel(jnp.full(5, 0.08), 1e-3))
+    with pytest.raises(ValueError, match=r"noise\.position_mm .*\(8,\), got shape \(5,\)"):
+        predicted_pose_covariance(cdra, poses, NoiseModel(jnp.full(5, 0.08), 1e-3))
+    with pytest.raises(ValueError, match=r"noise\.rotation_rad must be positive.*pose 2"):
+        analyze_uncertainty(cdra, poses, NoiseModel(0.08, np.array([1e-3] * 2 + [0.0] * 6)))
+    T = tool_pose(cdra, poses)
+    for call in (
+        lambda: analyze_uncertainty(cdra, poses, NOISE, T[:5]),
+        lambda: predicted_pose_covariance(cdra, poses, NOISE, None, T[:5]),
+    ):
+        with pytest.raises(ValueError, match=r"measured .*\(8, 4, 4\), got \(5, 4, 4\)"):
+            call()
+    with pytest.raises(ValueError, match=r"q_eval must have shape \(k, 7\)"):
+        analyze_uncertainty(cdra, poses, NOISE, q_eval=poses[:, :6])
+
+
+def test_cramer_rao_bound_directions(cdra, poses):
+    e = np.eye(cdra.n_params)
+    one = cramer_rao_bound(cdra, poses, NOISE, e[0])  # a single direction: a scalar
+    assert np.shape(one) == ()
+    assert float(one) == pytest.approx(float(cramer_rao_bound(cdra, poses, NOISE, e[:1])[0]))
+    unc = parameter_covariance(cdra, poses, NOISE)
+    assert float(unc.bound(e[0])) == pytest.approx(float(one))
+    for bad in (np.eye(23), np.zeros(()), np.zeros((3, 25))):
+        with pytest.raises(ValueError, match=r"directions must have shape \(k, n_params\)"):
+            cramer_rao_bound(cdra, poses, NOISE, bad)
+    with pytest.raises(ValueError, match="directions"):
+        unc.identifiable(np.eye(23))
 
 
 def _chi2_bounds(dof, alpha):
