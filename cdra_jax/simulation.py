@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -72,7 +73,9 @@ def random_frame_errors(
 def add_measurement_noise(key: Array, poses: ArrayLike, noise: NoiseModel | None) -> Array:
     """Perturb measured poses: ``p + N(0, s_pos^2 I)``, ``R -> exp(hat(N(0, s_rot^2 I))) R``.
 
-    The stds may be per-pose arrays ``(m,)`` (see :class:`~cdra_jax.calibration.NoiseModel`).
+    The stds may be per-pose arrays ``(m,)`` (see :class:`~cdra_jax.calibration.NoiseModel`),
+    or any shape that broadcasts against the leading axes of ``poses (..., 4, 4)`` without
+    changing them; others raise ``ValueError`` naming the field.
 
     The rotation noise is applied in the world frame, matching the whitening of
     :func:`cdra_jax.calibration.whitening`. ``noise=None`` returns ``poses`` unchanged.
@@ -80,6 +83,19 @@ def add_measurement_noise(key: Array, poses: ArrayLike, noise: NoiseModel | None
     poses = jnp.asarray(poses)
     if noise is None:
         return poses
+    lead = poses.shape[:-2]
+    for name in ("position_mm", "rotation_rad"):
+        shape = np.shape(getattr(noise, name))
+        try:
+            ok = np.broadcast_shapes(shape, lead) == lead
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ValueError(
+                f"noise.{name} must be a number (shape ()) or one std per pose (shape (m,) = "
+                f"({lead[-1] if lead else 1},), broadcast against the poses' leading axes "
+                f"{lead}), got shape {shape}"
+            )
     kp, kr = jax.random.split(key)
     shape = poses.shape[:-2] + (3,)
     # [..., None]: per-pose stds (m,) broadcast against the pose axis, as in the whitening.

@@ -102,12 +102,15 @@ def test_per_pose_stds_whiten_each_pose_with_its_own(cdra):
     for i in (0, 5, M - 1):
         Gi = np.asarray(white(p.T[i], NoiseModel(jnp.asarray(sp[i]), jnp.asarray(sr[i]))))
         np.testing.assert_allclose(G[i], Gi, rtol=1e-14)
-    # and the simulator draws with them: a pose with zero std is left exactly as it was
-    sp[3] = sr[3] = 0.0
+    # and the simulator draws with them: a pose with a negligible std is left as it was (a
+    # zero std is rejected: as a weight it would make every solve with the model non-finite)
+    with pytest.raises(ValueError, match=r"noise\.position_mm must be positive .* pose 3"):
+        NoiseModel(jnp.asarray(sp).at[3].set(0.0), jnp.asarray(sr))
+    sp[3], sr[3] = 1e-15, 1e-18
     noise = NoiseModel(jnp.asarray(sp), jnp.asarray(sr))
     noisy = np.asarray(eqx.filter_jit(add_measurement_noise)(jax.random.PRNGKey(1), p.T, noise))
-    np.testing.assert_array_equal(noisy[3], p.T[3])
-    assert np.all(np.abs(noisy[4] - p.T[4]).max() > 0)
+    np.testing.assert_allclose(noisy[3], p.T[3], rtol=0, atol=1e-13)
+    assert np.all(np.abs(noisy[4] - p.T[4]).max() > 1e-3)
 
 
 # --------------------------------------------------------------------------- robust fits

@@ -27,7 +27,9 @@ unchanged solvers.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -41,17 +43,50 @@ class NoiseModel(eqx.Module):
     Used to weight the residual (see the module docstring) and by the simulator. Each std is a
     number, or an array with one entry per pose (``(m,)``, broadcast against the pose axis of
     the measured poses ``(..., m, 4, 4)``) for per-pose weights.
+
+    Concrete values (numbers, numpy arrays, JAX arrays outside ``jit``/``vmap``) are checked
+    on construction: a number must be positive and finite; an entry of a per-pose array must
+    be positive, and may be ``+inf`` (that pose gets weight 0, as :mod:`.robust` uses it), but
+    not zero, negative or NaN (a zero entry would make the whole solve non-finite). Traced
+    values cannot be checked and are taken as given.
     """
 
     position_mm: float | Array
     rotation_rad: float | Array
 
     def __check_init__(self) -> None:
-        import numpy as np
-
         for name, v in (("position_mm", self.position_mm), ("rotation_rad", self.rotation_rad)):
-            if isinstance(v, int | float) and not (np.isfinite(v) and v > 0):
-                raise ValueError(f"NoiseModel.{name} must be a positive finite number, got {v!r}")
+            _check_std(name, v)
+
+
+def _check_std(name: str, v) -> None:
+    """Value check of a concrete noise std (see :class:`NoiseModel`); tracers are skipped."""
+    if isinstance(v, jax.core.Tracer):
+        return
+    try:
+        a = np.asarray(v)
+    except Exception as exc:  # e.g. a JAX array deleted or on no host
+        raise ValueError(
+            f"NoiseModel: noise.{name} must be a number or an array, got {v!r}"
+        ) from exc
+    if a.dtype.kind not in "iuf":
+        raise ValueError(
+            f"NoiseModel: noise.{name} must be a number or an array of them, got {v!r}"
+        )
+    if a.ndim == 0:
+        if not (np.isfinite(a) and a > 0):
+            raise ValueError(
+                f"NoiseModel: noise.{name} must be a positive finite number, got {a[()]!s}"
+            )
+        return
+    bad = np.argwhere(~(a > 0))  # zero, negative, -inf and NaN; +inf is weight 0
+    if bad.size:
+        idx = tuple(int(i) for i in bad[0])
+        where = f"pose {idx[0]}" if a.ndim == 1 else f"index {idx}"
+        raise ValueError(
+            f"NoiseModel: noise.{name} must be positive in every entry (+inf for weight 0), got "
+            f"{a[idx]!s} at {where}"
+        )
 
 
 def residual_twist(measured: ArrayLike, model: ArrayLike) -> Array:

@@ -279,7 +279,9 @@ def mad_scale(e: ArrayLike, measured: ArrayLike, rank: ArrayLike | None = None) 
     s = _MAD_TO_STD * jnp.stack([med_p, med_r], axis=-1)
     if rank is not None:
         free = jnp.maximum(n_obs - jnp.asarray(rank), 1)
-        s = s * jnp.sqrt(n_obs / free)[..., None]
+        # In the dtype of e: the quotient of two integers is float64 with x64 enabled, which
+        # would promote a float32 scale (and the IRLS weights carried in the loop) to float64.
+        s = s * jnp.sqrt(n_obs / free).astype(e.dtype)[..., None]
     eps = float(jnp.finfo(e.dtype).eps) ** 0.5
     p = lie.translation(measured)
     reach = jnp.sqrt(jnp.mean(jnp.sum(p * p, axis=-1), axis=-1))
@@ -329,12 +331,13 @@ def standardized_residuals(
 def _noise_scale(noise: NoiseModel | None, dtype) -> Array | None:
     if noise is None:
         return None
-    if np.ndim(noise.position_mm) or np.ndim(noise.rotation_rad):
-        raise ValueError(
-            "robust estimation needs one noise std per quantity (scalars), got position_mm of "
-            f"shape {np.shape(noise.position_mm)} and rotation_rad of shape "
-            f"{np.shape(noise.rotation_rad)}; the robust weights are the per-pose part"
-        )
+    for name in ("position_mm", "rotation_rad"):
+        if np.ndim(getattr(noise, name)):
+            raise ValueError(
+                f"noise.{name} must be a number (shape ()) for robust estimation, got shape "
+                f"{np.shape(getattr(noise, name))}: it needs one noise std per quantity (the "
+                "robust weights are the per-pose part)"
+            )
     return jnp.stack(
         [jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype)]
     )
@@ -380,7 +383,9 @@ def calibrate_robust(
         threshold: flag poses with ``z > threshold`` as outliers.
         reject_outliers: finish with a least-squares refit without the flagged poses (see the
             module docstring; static).
-        max_iterations: iteration cap of each inner solve (default: the solver's).
+        max_iterations: iteration cap of each inner solve (default: the solver's). The inner
+            solves use their default tolerances, which depend on the dtype (float32 problems:
+            :data:`.gauss_newton.TOL_FLOAT32`, :data:`.levenberg_marquardt.ATOL_FLOAT32`).
         rcond: relative singular-value cut-off of the inner solves (see :mod:`.linear`).
         allow_underdetermined: passed to the inner solver (fewer than 4 poses).
         throw: raise when the result is not successful; use ``False`` under ``vmap``.
@@ -513,7 +518,13 @@ def calibrate_robust(
         # Least squares on the unflagged poses (flagged: weight 0, i.e. infinite std).
         w_in = jnp.where(outliers, 0.0, 1.0).astype(dtype)
         sw = jnp.sqrt(w_in)
-        sol_r = solve(frames, NoiseModel(position_mm=scale[0] / sw, rotation_rad=scale[1] / sw))
+        # A failed trial (not ok) can carry a NaN scale, which NoiseModel rejects when it is
+        # concrete (outside jit); its refit is discarded below, so any positive scale will do.
+        # (A Python branch, taken only outside jit: the traced program stays as it was.)
+        s_in = scale
+        if not isinstance(ok, jax.core.Tracer) and not bool(ok):
+            s_in = jnp.ones_like(scale)
+        sol_r = solve(frames, NoiseModel(position_mm=s_in[0] / sw, rotation_rad=s_in[1] / sw))
         refit = (
             ok
             & (jnp.sum(~outliers) >= 4)

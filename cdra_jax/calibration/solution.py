@@ -13,7 +13,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm, module_poses
 from .model import NoiseModel
-from .validation import check_problem
+from .validation import check_noise, check_problem
 
 
 class RESULTS(eqx.Enumeration):
@@ -77,6 +77,15 @@ class CalibrationSolution(eqx.Module):
         return jnp.take_along_axis(self.delta_R, self.iterations[..., None], axis=-1)[..., 0]
 
 
+def dtype_default(value: float | None, dtype, *, float64: float, float32: float) -> float:
+    """``value``, or where it is ``None`` the default of a solve in ``dtype``: ``float64`` for
+    float64 problems, ``float32`` otherwise (the only other dtype that
+    :func:`.validation.check_problem` gives, e.g. float64 input with x64 disabled)."""
+    if value is not None:
+        return value
+    return float64 if jnp.dtype(dtype) == jnp.float64 else float32
+
+
 def result_names(result: RESULTS) -> np.ndarray:
     """Name (``"successful"``, ``"max_iterations_reached"``, ...) of each entry of a code."""
     names = list(RESULTS._name_to_item)
@@ -92,7 +101,7 @@ def result_messages(result: RESULTS) -> np.ndarray:
 
 
 def _solve_problem(
-    solve: Callable[..., CalibrationSolution],
+    make_solver: Callable[[np.dtype], Callable[..., CalibrationSolution]],
     arm: Arm,
     q: ArrayLike,
     measured: ArrayLike,
@@ -103,17 +112,20 @@ def _solve_problem(
 ) -> CalibrationSolution:
     """Check a calibration problem, run a per-trial solver on it and apply ``throw``.
 
-    ``solve(frames0 (K+1, 4, 4), poses (m, K, 4, 4), measured (m, 4, 4)[, s_pos, s_rot])`` is
-    one of the solvers' compiled per-trial functions; the noise stds (scalars, or ``(m,)`` per
-    pose) are passed only when a noise model is given. Shapes are checked by
-    :func:`.validation.check_problem` (``ValueError`` at trace time).
+    ``make_solver(dtype)`` gives one of the solvers' compiled per-trial functions for the
+    problem's dtype (float32 or float64: the default tolerances depend on it),
+    ``solve(frames0 (K+1, 4, 4), poses (m, K, 4, 4), measured (m, 4, 4)[, s_pos, s_rot])``; the
+    noise stds (scalars, or ``(m,)`` per pose) are passed only when a noise model is given.
+    Shapes are checked by :func:`.validation.check_problem` and
+    :func:`.validation.check_noise` (``ValueError`` at trace time).
     """
     q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
+    check_noise(noise, measured.shape[0])
     dtype = measured.dtype
     args: tuple[Array, ...] = (jnp.asarray(arm.frames, dtype), module_poses(arm, q), measured)
     if noise is not None:
         args += (jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype))
-    sol = solve(*args)
+    sol = make_solver(dtype)(*args)
     if throw:
         sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
     return sol

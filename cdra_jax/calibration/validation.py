@@ -8,6 +8,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from ..arm import Arm
+from .model import NoiseModel
 
 MIN_POSES = 4
 """The paper's lower bound on the number of measured poses for Eq. 9 (Section IV)."""
@@ -46,6 +47,24 @@ def check_problem(
     if m < 1:
         raise ValueError("no measured poses given")
     return q, measured
+
+
+def check_noise(noise: NoiseModel | None, m: int) -> None:
+    """Trace-time check that each std of ``noise`` is a number or one per pose.
+
+    Raises:
+        ValueError: ``noise.position_mm`` or ``noise.rotation_rad`` of a shape other than
+            ``()`` or ``(m,)``, naming the field and the expected shape.
+    """
+    if noise is None:
+        return
+    for name in ("position_mm", "rotation_rad"):
+        shape = np.shape(getattr(noise, name))
+        if shape not in ((), (m,)):
+            raise ValueError(
+                f"noise.{name} must be a number (shape ()) or one std per pose (shape (m,) = "
+                f"({m},)), got shape {shape}"
+            )
 
 
 def require_finite_states(arm: Arm, q: np.ndarray, name: str = "module states") -> None:
