@@ -17,7 +17,8 @@ second pass costs in proportion to the flagged trials rather than to the chunks 
 
 Unbatched calls are untouched, and the results equal those of plain ``vmap`` (the same
 per-trial arithmetic). The wrapped function is not differentiable (``jax.custom_batching``
-functions are not); the solvers it is used for are iterative and are not differentiated.
+functions are not): the solvers call it on inputs without derivatives and take their
+derivatives from the optimality condition instead (:mod:`.implicit`).
 """
 
 from __future__ import annotations

@@ -105,6 +105,11 @@ def calibrate_paper(
 
     Returns:
         A :class:`CalibrationSolution`.
+
+    Differentiable with respect to ``q``, ``measured``, the frames of ``arm`` and the noise
+    stds, through the optimality condition ``D~^T Y~ = 0`` (Eq. 10), not through the
+    iterations: see :mod:`.implicit` (``frames``, ``errors`` and ``cost`` carry the
+    derivative).
     """
 
     def make_solver(dtype):

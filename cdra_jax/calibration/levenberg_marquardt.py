@@ -142,7 +142,8 @@ def calibrate_lm(
     its ``max_steps``. The
     ``step_norm`` history holds ``||X_k - X_{k-1}||`` (zero for rejected steps). The
     unidentifiable directions of the nominal linearisation (rank cut-off ``rcond``) are left
-    at zero, as the paper solver's minimum-norm steps do to first order.
+    at zero, as the paper solver's minimum-norm steps do to first order. Differentiable like
+    :func:`calibrate_paper`, through the condition ``J^T Y~ = 0`` (:mod:`.implicit`).
     """
 
     def make_solver(dtype):

@@ -83,6 +83,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, module_poses
+from . import implicit
 from .batching import batched_like
 from .gauss_newton import calibrate_paper
 from .levenberg_marquardt import calibrate_lm
@@ -349,6 +350,14 @@ _SOLVERS: dict[str, Callable[..., CalibrationSolution]] = {
 }
 
 
+_NOT_DIFFERENTIABLE = (
+    "calibrate_robust is not differentiable: its reweighting rounds and outlier flags are "
+    "discrete decisions. Differentiate calibrate_paper or calibrate_lm instead, with the final "
+    "round's weights as per-pose noise (NoiseModel(s_pos / sqrt(w), s_rot / sqrt(w))), or "
+    "wrap the inputs of calibrate_robust in jax.lax.stop_gradient"
+)
+
+
 def calibrate_robust(
     arm: Arm,
     q: ArrayLike,
@@ -395,7 +404,11 @@ def calibrate_robust(
 
     Raises:
         ValueError: unknown loss or solver, wrong shapes, too few poses, per-pose noise arrays.
+            Also when differentiated (``jax.grad``, ``jax.jvp``, ...): see the message.
     """
+    arm, q, measured, noise = implicit.refuse_derivatives(
+        _NOT_DIFFERENTIABLE, (arm, q, measured, noise)
+    )
     loss = robust_loss(loss)
     if solver not in _SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; known: {', '.join(_SOLVERS)}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -12,6 +13,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, module_poses
+from . import implicit
 from .model import NoiseModel
 from .validation import check_noise, check_problem
 
@@ -43,6 +45,10 @@ class CalibrationSolution(eqx.Module):
         singular_values: its singular values ``(..., n_params)``.
         cost: final weighted sum of squared residuals (paper form: unweighted) ``(...)``.
         solver: ``"paper"``, ``"weighted"`` or ``"lm"``.
+
+    Derivatives (``jax.grad``, ``jax.jvp``, ...): ``frames``, ``errors`` and ``cost`` carry the
+    derivative of the solution with respect to the data through its optimality condition
+    (:mod:`.implicit`); the other fields are diagnostics with zero derivative.
     """
 
     frames: Array
@@ -58,7 +64,11 @@ class CalibrationSolution(eqx.Module):
     solver: str = eqx.field(static=True)
 
     def calibrated_arm(self, nominal: Arm) -> Arm:
-        """The nominal arm with the calibrated frames (Eq. 19); unbatched solutions only."""
+        """The nominal arm with the calibrated frames (Eq. 19).
+
+        For a batched solution the arm's frames are batched too ``(..., K+1, 4, 4)``: map
+        per-trial functions over it with ``jax.vmap``.
+        """
         return nominal.with_frames(self.frames)
 
     @property
@@ -125,7 +135,18 @@ def _solve_problem(
     args: tuple[Array, ...] = (jnp.asarray(arm.frames, dtype), module_poses(arm, q), measured)
     if noise is not None:
         args += (jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype))
-    sol = make_solver(dtype)(*args)
+    # The solvers iterate; their derivatives come from the optimality condition instead
+    # (:mod:`.implicit`), so the iterations run on inputs without derivatives.
+    sol = make_solver(dtype)(*jax.lax.stop_gradient(args))
+    frames, errors, cost = implicit.attach(
+        "lm" if sol.solver == "lm" else "gauss_newton",
+        sol.frames,
+        sol.errors,
+        sol.cost,
+        sol.rank,
+        *args,
+    )
+    sol = eqx.tree_at(lambda s: (s.frames, s.errors, s.cost), sol, (frames, errors, cost))
     if throw:
         sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
     return sol
