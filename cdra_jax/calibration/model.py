@@ -173,8 +173,8 @@ def deviation_metrics(measured: ArrayLike, model: ArrayLike) -> tuple[Array, Arr
     dpos = lie.translation(measured) - lie.translation(model)
     Rrel = jnp.swapaxes(lie.rotation(measured), -1, -2) @ lie.rotation(model)
     w = lie.so3_log(Rrel)
-    dp = jnp.sqrt(jnp.mean(jnp.sum(dpos * dpos, axis=-1), axis=-1))
-    dR = jnp.sqrt(jnp.mean(jnp.sum(w * w, axis=-1), axis=-1))
+    dp = _root(jnp.mean(jnp.sum(dpos * dpos, axis=-1), axis=-1))
+    dR = _root(jnp.mean(jnp.sum(w * w, axis=-1), axis=-1))
     return dp, dR
 
 
@@ -182,6 +182,38 @@ def pose_errors(measured: ArrayLike, model: ArrayLike) -> tuple[Array, Array]:
     """Per-pose position error norm (mm) and rotation error angle (rad): each ``(..., m)``."""
     measured = jnp.asarray(measured)
     model = jnp.asarray(model)
-    dpos = jnp.linalg.norm(lie.translation(measured) - lie.translation(model), axis=-1)
+    dpos = _norm(lie.translation(measured) - lie.translation(model))
     Rrel = jnp.swapaxes(lie.rotation(measured), -1, -2) @ lie.rotation(model)
     return dpos, lie.rotation_angle(Rrel)
+
+
+# The square roots of the metrics, with derivative 0 where their argument is 0 (an exact fit),
+# as a subgradient: the plain ``sqrt`` gives 0 * inf = NaN there. A ``custom_jvp`` rather than a
+# "double where", so that the values stay bitwise those of the plain ``sqrt`` / ``norm`` (a
+# double where reordered the robust refit's rounding).
+@jax.custom_jvp
+def _root(x: Array) -> Array:
+    """``sqrt(x)`` for a sum of squares ``x >= 0``; derivative 0 at ``x = 0``."""
+    return jnp.sqrt(x)
+
+
+@_root.defjvp
+def _root_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    root = jnp.sqrt(x)
+    positive = x > 0
+    return root, jnp.where(positive, dx / (2 * jnp.where(positive, root, 1)), 0)
+
+
+@jax.custom_jvp
+def _norm(v: Array) -> Array:
+    """``|v|`` over the last axis; derivative 0 at ``v = 0``."""
+    return jnp.linalg.norm(v, axis=-1)
+
+
+@_norm.defjvp
+def _norm_jvp(primals, tangents):
+    (v,), (dv,) = primals, tangents
+    norm = jnp.linalg.norm(v, axis=-1)
+    positive = norm > 0
+    return norm, jnp.where(positive, jnp.sum(v * dv, axis=-1) / jnp.where(positive, norm, 1), 0)
