@@ -83,3 +83,27 @@ def ur5():
     from cdra_jax.io import loads_model
 
     return loads_model(UR5_TOML, source="<tests/conftest.py UR5_TOML>")
+
+
+# The longest tests first (each 10-40 s, mostly compilation), so that with `-n 2` the two
+# workers end on short tests instead of one of them finishing a notebook alone.
+_LONG_FIRST = (
+    "tests/test_notebooks.py",
+    "tests/test_implicit_derivatives.py",
+    "tests/test_diagnosis.py::test_clean_recordings_give_none",
+    "tests/test_sweeps.py::test_split_over_two_cpu_devices_matches",
+    "tests/test_compilation.py::test_options_change_no_result_of_the_solvers",
+    "tests/test_physics.py",
+    "tests/test_batching.py::test_solvers_split_over_two_cpu_devices_finish_and_match",
+    "tests/test_benchmark_baselines.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    def rank(item):
+        for i, prefix in enumerate(_LONG_FIRST):
+            if item.nodeid.startswith(prefix):
+                return i
+        return len(_LONG_FIRST)
+
+    items.sort(key=rank)  # stable: the order within each group is kept
