@@ -50,7 +50,12 @@ EXPECTED_TEXT: dict[str, tuple[str, ...]] = {
         "weighted solver more accurate than the paper's at m = 40: True",
         "the weighted solver's curves against measured poses flatten at m = ",
     ),
-    "02_noise_sensitivity.ipynb": ("predicted", "selected", "not identifiable on its own"),
+    "02_noise_sensitivity.ipynb": (
+        "predicted",
+        "selected",
+        "not identifiable on its own",
+        "mm per mm",  # the influence of each measured pose, by jax.jacrev through the solver
+    ),
     "03_missing_physics.ipynb": (
         "Most likely missing physics: the shoulder module's cables stretch",
         "held-out position error",
