@@ -112,14 +112,15 @@ def _attach_jvp(kind, primals, tangents):
 
     # dG/dtheta dtheta and the cost's derivative along theta, in one forward pass.
     (_, _), (dG, dcost_data) = jax.jvp(lambda data: condition(d0, data), (data,), (ddata,))
-    H = jax.jacfwd(lambda d: condition(d, data)[0])(d0)
+    # H = dG/dd, and the cost's gradient in d, from one forward-mode Jacobian.
+    H, dcost_dd = jax.jacfwd(lambda d: condition(d, data))(d0)
     U, s, Vt = jnp.linalg.svd(H)
     keep = jnp.arange(n) < rank
     s_inv = jnp.where(keep, 1 / jnp.where(keep, s, 1), 0)  # double where: no 1/0 anywhere
     dd = -(Vt.T @ (s_inv * (U.T @ dG)))
     # The cost also moves with d (zero at an exact stationary point of the cost; kept, since
     # the paper's condition is not exactly that under noise).
-    _, dcost_d = jax.jvp(lambda d: condition(d, data)[1], (d0,), (dd,))
+    dcost_d = dcost_dd @ dd
     dframes = lie.hat(dd.reshape(-1, 6)) @ frames
 
     def errors_of(frames, frames0):
