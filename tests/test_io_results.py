@@ -193,6 +193,10 @@ def test_batched_solution_is_refused(cdra, problem):
             lambda t: json.dumps(_drop(json.loads(t), "identifiability", "rank")),
             "identifiability: missing key 'rank'",
         ),
+        (  # hypothesis found this one: a TypeError before
+            lambda t: json.dumps({**json.loads(t), "identifiability": None}),
+            "identifiability: expected an object",
+        ),
     ],
 )
 def test_malformed_result_file_errors_name_file_and_key(result, tmp_path, edit, expected):

@@ -387,6 +387,8 @@ def loads_result(text: str, source: str = "<result>") -> dict[str, Any]:
             problem = rigid_transform_problem(M)
             if problem:
                 raise ResultFileError(f"{source}: frames.{name}.{key}.matrix: {problem}")
+    if not isinstance(d["identifiability"], dict):
+        raise ResultFileError(f"{source}: identifiability: expected an object")
     for key in ("rank", "n_params"):
         if key not in d["identifiability"]:
             raise ResultFileError(f"{source}: identifiability: missing key {key!r}")
