@@ -1,6 +1,6 @@
 """CDPM modules of the default CDRA: workspace coverage, cable FK, statics, self-calibration.
 
-Prints the numbers quoted in ``docs/fragments/cdpm.md`` and the model file's comments::
+Prints the numbers quoted in ``benchmarks/README.md`` and the model file's comments::
 
     PYTHONPATH=. python benchmarks/cdpm_study.py [--draws 100000] [--trials 20] [--poses 80]
 

@@ -1,7 +1,7 @@
 """Concealed-effect recordings: an independent, richer simulation of the CDRA's non-geometric
 physics.
 
-This is the *generator* half of the proof on concealed effects (issue 6, item 3): it writes
+This is the *generator* half of the proof on concealed effects: it writes
 recordings of a simulated arm that carries one hidden physical effect besides the random
 geometric assembly errors of Section V, in exactly the files a user with a real arm has (the
 NOMINAL model TOML and a measurement CSV), so that an analyser can be scored on finding the

@@ -37,7 +37,7 @@ def _peak_mib() -> float:
 
 def child(args) -> dict:
     sys.path.insert(0, str(ROOT))
-    from cdra_jax.cli_sweep import default_cpu_devices
+    from cdra_jax.cli.sweep import default_cpu_devices
     from cdra_jax.parallel import use_cpu_devices
 
     # Before JAX starts; by default as cdra-jax sweep chooses for a cell of this many trials.

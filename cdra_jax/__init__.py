@@ -3,7 +3,9 @@
 Implements Mustafa, Yang, Yeo and Lin, "Kinematic calibration of a 7-DOF self-calibrated
 modular cable-driven robotic arm" (ICRA 2008): the SE(3) maps of its appendix (:mod:`.lie`), the
 modular arm (:mod:`.arm`), the local-POE calibration model and its solvers
-(:mod:`.calibration`), identifiability analysis, simulation and file I/O.
+(:mod:`.calibration`), identifiability analysis, simulation and file I/O. What a user runs
+(calibrate, validate, diagnose, simulate, sweep, plan poses) is in :mod:`.workflows`, which the
+command line (:mod:`.cli`) and the notebooks share.
 """
 
 import importlib.metadata
@@ -15,11 +17,13 @@ from . import identifiability as identifiability
 from . import io as io
 from . import lie as lie
 from . import modules as modules
+from . import plots as plots
 from . import pose_selection as pose_selection
 from . import reproduction as reproduction
 from . import simulation as simulation
 from . import sweeps as sweeps
 from . import uncertainty as uncertainty
+from . import workflows as workflows
 from .arm import Arm as Arm
 from .arm import Module as Module
 from .arm import apply_frame_errors as apply_frame_errors

@@ -362,3 +362,13 @@ def apply_frame_errors(arm: Arm, errors: ArrayLike) -> Arm:
 def frame_errors(calibrated: Arm, nominal: Arm) -> Array:
     """Error twists of the calibrated frames w.r.t. the nominal ones (Eqs. 15-18): ``(K+1, 6)``."""
     return lie.se3_log(calibrated.frames @ lie.inverse(nominal.frames))
+
+
+def sample_states(key: Array, arm: Arm, m: int, dtype=None) -> Array:
+    """``m`` module states drawn uniformly within each state entry's limits: ``(m, dof)``.
+
+    Spherical modules are sampled per rotation-vector component within their box limits.
+    """
+    lim = jnp.asarray(arm.state_limits, dtype=dtype or jnp.asarray(arm.frames).dtype)
+    u = jax.random.uniform(key, (m, arm.dof), dtype=lim.dtype)
+    return lim[:, 0] + u * (lim[:, 1] - lim[:, 0])

@@ -5,7 +5,7 @@ The calibration solvers are long element-wise programs (the pose-last kernels of
 fused element-wise kernels with the MLIR "fusion emitters" by default; for these programs its
 older LLVM-IR emitters (``xla_cpu_use_fusion_emitters=False``) compile 1.2-1.5x faster and the
 code runs a few per cent faster, with bitwise equal results at XLA's default optimisation level
-(``benchmarks/README.md``, session 7; 10^4 trials, medians of 5 fresh processes: LM 5.24 ->
+(``benchmarks/README.md``; 10^4 trials, medians of 5 fresh processes: LM 5.24 ->
 4.43 s, paper solver 4.13 -> 2.72 s to trace and compile; interleaved calls: paper 1.09x, LM
 1.04x the throughput). Every place where the package compiles a program (the sweeps, the
 Section V/VI reproduction, the command line, the analyses) uses :func:`jit` or
@@ -158,3 +158,11 @@ def filter_jit(fun: Callable, *, fast_compile: bool = False, **jit_kwargs) -> An
         return eqx.filter_jit(fun, compiler_options={**options, **own}, **jit_kwargs)
 
     return _LazyJit(make, fun, fast_compile)
+
+
+@functools.cache
+def cached_filter_jit(fun: Callable) -> Any:
+    """:func:`filter_jit` of ``fun``, made once per function, so that repeated calls with the
+    same shapes reuse the compiled program (the workflows compile each solve this way: one
+    compiled program starts several times faster than op-by-op dispatch)."""
+    return filter_jit(fun)

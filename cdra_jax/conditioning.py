@@ -6,7 +6,8 @@ the same, the elbow barely moving. The solvers then return an answer whose compo
 those directions is dominated by measurement noise (and amplified by it). This module measures
 that and names the directions.
 
-Measure. The condition number ``s_max / s_min`` (over the numerically nonzero singular values,
+Measure. The condition number (:func:`cdra_jax.identifiability.scaled_svd`, the package's one
+definition) ``s_max / s_min`` (over the numerically nonzero singular values,
 same ``rcond`` as the solvers) of the **column-scaled** stacked Jacobian ``D~ S`` of Eq. 9,
 ``S = diag(1 / ||column_j||)``. Column scaling removes the unit mix of the parameters (mm and
 rad) and the arbitrary size of each one, so the number compares pose sets, not units (the usual
@@ -34,9 +35,8 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from .arm import Arm
-from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel
-from .identifiability import format_combination, stacked_jacobian
+from .identifiability import format_combination, scaled_svd, stacked_jacobian
 
 CONDITION_WARNING = 1e3
 """Warn when the column-scaled condition number of the stacked Jacobian exceeds this."""
@@ -127,12 +127,7 @@ def conditioning(
     D = stacked_jacobian(arm, q, measured, noise)
     if not np.all(np.isfinite(D)):
         raise ValueError("the stacked Jacobian is not finite (NaN or inf in the inputs)")
-    norms = np.linalg.norm(D, axis=0)
-    scale = 1.0 / np.where(norms > 0, norms, 1.0)
-    _, s, Vt = np.linalg.svd(D * scale, full_matrices=False)
-    rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
-    rank = int(np.sum(s > rcond * s[0])) if s.size and s[0] > 0 else 0
-    cond = float(s[0] / s[rank - 1]) if rank > 0 else float("inf")
+    cond, rank, s, Vt, scale = scaled_svd(D, rcond)
     weak = [i for i in range(rank - 1, -1, -1) if s[i] * threshold < s[0]]
     dirs = np.array([scale * Vt[i] for i in weak]).reshape(len(weak), D.shape[1])
     if dirs.size:

@@ -34,6 +34,7 @@ Coefficients below ``1e-9`` are dropped.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -56,7 +57,8 @@ class IdentifiabilityReport:
         n_params: number of parameters, ``6 (K+1)``.
         n_poses: number of poses.
         singular_values: ``(n_params,)`` in decreasing order (zero-padded if fewer rows).
-        condition_number: ``s_max / s_min`` over the identifiable directions.
+        condition_number: the column-scaled condition number of the stacked Jacobian
+            (:func:`scaled_svd`), the one number of conditioning the package reports.
         null_space: ``(n_params - rank, n_params)`` orthonormal basis of the unidentifiable
             subspace (rows), in the order of ``directions``.
         unidentifiable: ``directions`` as text, e.g.
@@ -271,6 +273,43 @@ def generic_rank(
     return analyze(arm, q, None, noise, rcond=rcond, allow_underdetermined=True).rank
 
 
+class ScaledSVD(NamedTuple):
+    """SVD of the column-scaled stacked Jacobian ``D S`` (see :func:`scaled_svd`)."""
+
+    condition_number: float
+    rank: int
+    singular_values: np.ndarray
+    Vt: np.ndarray
+    scale: np.ndarray
+
+
+def scaled_svd(D: np.ndarray, rcond: float | None = None) -> ScaledSVD:
+    """The condition number of a calibration: ``s_max / s_min`` of the **column-scaled**
+    stacked Jacobian ``D S`` (Eq. 9), ``S = diag(1 / ||column_j||)``, over the singular values
+    above ``rcond * s_max`` (default as the solvers).
+
+    Column scaling removes the unit mix of the parameters (mm and rad), so the number compares
+    pose sets, not units (the scaled observability index of robot calibration). This is the
+    one definition the package uses: :func:`analyze` reports it and
+    :func:`cdra_jax.conditioning.conditioning` warns on it.
+
+    Args:
+        D: ``(rows, n)`` stacked Jacobian (whitened or not).
+        rcond: relative singular-value cut-off.
+
+    Returns:
+        The condition number (``inf`` at rank 0), the rank, the singular values of ``D S``,
+        its right singular vectors ``Vt`` and the column scale ``diag(S)``.
+    """
+    norms = np.linalg.norm(D, axis=0)
+    scale = 1.0 / np.where(norms > 0, norms, 1.0)
+    _, s, Vt = np.linalg.svd(D * scale, full_matrices=False)
+    rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
+    rank = int(np.sum(s > rcond * s[0])) if s.size and s[0] > 0 else 0
+    cond = float(s[0] / s[rank - 1]) if rank > 0 else float("inf")
+    return ScaledSVD(cond, rank, s, Vt, scale)
+
+
 def analyze(
     arm: Arm,
     q: ArrayLike,
@@ -319,7 +358,7 @@ def analyze(
     names = arm.param_names
     directions, null = readable_directions(Vt[rank:].T, names)
     text = tuple(format_combination(v, names) for v in directions)
-    cond = float(s_full[0] / s_full[rank - 1]) if rank > 0 else float("inf")
+    cond = scaled_svd(D, rcond).condition_number
     warns = []
     if m < MIN_POSES:
         warns.append(f"only {m} poses: fewer than the paper's lower bound of {MIN_POSES}")

@@ -18,21 +18,12 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from . import lie
-from .arm import Arm, apply_frame_errors, tool_pose
+from .arm import Arm, apply_frame_errors, sample_states, tool_pose
 from .calibration.model import NoiseModel
+from .modules.tension import sample_feasible_states
 
 StateSampler = Callable[[Array, Arm, int], Array]
 """``sampler(key, arm, m) -> (m, dof)`` module states."""
-
-
-def sample_states(key: Array, arm: Arm, m: int, dtype=None) -> Array:
-    """``m`` module states drawn uniformly within each state entry's limits: ``(m, dof)``.
-
-    Spherical modules are sampled per rotation-vector component within their box limits.
-    """
-    lim = jnp.asarray(arm.state_limits, dtype=dtype or jnp.asarray(arm.frames).dtype)
-    u = jax.random.uniform(key, (m, arm.dof), dtype=lim.dtype)
-    return lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
 
 
 def sample_poses(key: Array, arm: Arm, m: int, dtype=None, *, throw: bool = True) -> Array:
@@ -50,8 +41,6 @@ def sample_poses(key: Array, arm: Arm, m: int, dtype=None, *, throw: bool = True
     ``throw=False``.
     """
     if any(mod.n_cables > 0 for mod in arm.modules):
-        from .modules.tension import sample_feasible_states
-
         return sample_feasible_states(key, arm, m, dtype, throw=throw)
     return sample_states(key, arm, m, dtype)
 

@@ -680,9 +680,36 @@ class _NoBar:
         pass
 
 
+class _LogLines:
+    """Progress as plain lines on stderr, for a log file or a pipe (no terminal to redraw a
+    bar on): one line per finished chunk, at most one every ``every`` seconds, and the last."""
+
+    def __init__(self, total: int, every: float = 5.0):
+        self.total, self.done, self.every = total, 0, every
+        self.t0 = self.last = time.perf_counter()
+
+    def update(self, n: int) -> None:
+        self.done += n
+        now = time.perf_counter()
+        if now - self.last >= self.every or self.done >= self.total:
+            self.last = now
+            print(
+                f"sweep: {self.done}/{self.total} trials ({100 * self.done / self.total:.0f} %), "
+                f"{now - self.t0:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    def close(self) -> None:
+        pass
+
+
 def _progress(total: int, enabled: bool):
-    if not enabled or not sys.stderr.isatty():
+    """A tqdm bar on a terminal, log lines otherwise (``enabled=False``: nothing)."""
+    if not enabled:
         return _NoBar()
+    if not sys.stderr.isatty():
+        return _LogLines(total)
     from tqdm.auto import tqdm
 
     return tqdm(total=total, unit="trial", desc="sweep", file=sys.stderr)

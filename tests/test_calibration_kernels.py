@@ -30,7 +30,7 @@ from cdra_jax.calibration import (
     stacked_system,
     whitening,
 )
-from cdra_jax.calibration.levenberg_marquardt import residual_jacobian
+from cdra_jax.calibration.kernels import residual_jacobian
 from cdra_jax.calibration.linear import (
     RESOLVED_PIVOT,
     min_norm_lstsq,

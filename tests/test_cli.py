@@ -12,8 +12,11 @@ import equinox as eqx
 import numpy as np
 import pytest
 
-from cdra_jax import cli, default_arm, demo, tool_pose
+from cdra_jax import cli, default_arm, tool_pose
+from cdra_jax.cli import commands as cli_commands
+from cdra_jax.cli import demo as demo_cli
 from cdra_jax.io import dumps_model, loads_measurements
+from cdra_jax.workflows.calibrate import implausible_frame_errors_warning
 
 COMPONENTS = ("vx", "vy", "vz", "wx", "wy", "wz")
 M = 12
@@ -109,7 +112,7 @@ def test_noise_flags_select_the_weighted_solver(tmp_path, capsys):
     r = json.loads(out.read_text())
     assert r["solver"] == "weighted" and r["converged"] is True
     assert r["noise"] == {"position_mm": 0.01, "rotation_rad": 0.0001}
-    assert "weighted by the noise model" in capsys.readouterr().out
+    assert "whitened by the noise model" in capsys.readouterr().out
     # with noise the fit residual is of the noise size, and base/tool are close to the truth
     assert 1e-3 < r["final"]["delta_p_mm"] < 0.05
     preset = _truth(truth)["frames"]
@@ -309,17 +312,17 @@ def test_demo_entry_point_dispatches_to_the_demo(tmp_path, monkeypatch, capsys):
     taken = tmp_path / "taken"
     taken.mkdir()
     (taken / "keep.txt").write_text("keep")
-    assert cli.main(["demo", "--out", str(taken)]) == cli.EXIT_ERROR  # a file problem: exit 1
+    assert cli.main(["demo", "--out-dir", str(taken)]) == cli.EXIT_ERROR  # a file problem: exit 1
     assert "--force" in _one_error_line(capsys)
     assert (taken / "keep.txt").read_text() == "keep"
-    assert cli.main(["demo", "--out", str(taken / "keep.txt")]) == cli.EXIT_ERROR
+    assert cli.main(["demo", "--out-dir", str(taken / "keep.txt")]) == cli.EXIT_ERROR
     assert "keep.txt: exists and is not a folder" in _one_error_line(capsys)
     # The parsed options arrive at demo.run unchanged.
     seen = []
-    monkeypatch.setattr(demo, "run", lambda args: seen.append(args) or 0)
+    monkeypatch.setattr(demo_cli, "run", lambda args: seen.append(args) or 0)
     assert cli.main(["demo", "--full", "--out", str(tmp_path / "o"), "--seed", "3"]) == 0
     (args,) = seen
-    assert (args.full, args.out, args.seed, args.force) == (True, str(tmp_path / "o"), 3, False)
+    assert (args.full, args.out_dir, args.seed, args.force) == (True, str(tmp_path / "o"), 3, False)
 
 
 def test_external_subcommand_module_plugs_in(monkeypatch, capsys):
@@ -335,7 +338,7 @@ def test_external_subcommand_module_plugs_in(monkeypatch, capsys):
 
     fake.register, fake.run = register, run
     monkeypatch.setitem(sys.modules, "cdra_jax._fake_cmd", fake)
-    monkeypatch.setattr(cli, "SUBCOMMANDS", [*cli.SUBCOMMANDS, cli._external("_fake_cmd")])
+    monkeypatch.setattr(cli_commands, "SUBCOMMANDS", (*cli_commands.SUBCOMMANDS, fake))
     assert cli.main(["fake", "--n", "3"]) == 7
     assert "fake ran with n=3" in capsys.readouterr().out
 
@@ -526,7 +529,7 @@ def test_implausibly_large_identified_errors_warn(tmp_path, capsys):
 def test_plausibility_thresholds_of_identified_errors():
     zero = dict.fromkeys(COMPONENTS, 0.0)
     frames = {"base": {"error_twist": dict(zero, vx=30.0, vy=40.0)}}  # |v| = 50: not above
-    assert cli.implausible_frame_errors_warning({"frames": frames}) is None
+    assert implausible_frame_errors_warning({"frames": frames}) is None
     frames["tool"] = {"error_twist": dict(zero, wz=-0.51, vx=None)}  # unidentified -> 0
-    w = cli.implausible_frame_errors_warning({"frames": frames})
+    w = implausible_frame_errors_warning({"frames": frames})
     assert w is not None and "tool (|v| = 0 mm, |w| = 0.51 rad)" in w and "base" not in w

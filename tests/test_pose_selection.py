@@ -12,7 +12,7 @@ import pytest
 from cdra_jax import NoiseModel, lie, tool_pose
 from cdra_jax.arm import chain, module_poses
 from cdra_jax.calibration import calibration_jacobian, whitening
-from cdra_jax.cli_plan import main as plan_main
+from cdra_jax.cli import main as cli_main
 from cdra_jax.pose_selection import (
     identifiable_basis,
     information_blocks,
@@ -174,7 +174,7 @@ def test_unbounded_prediction_where_the_pool_identifies_too_little(cdra, pool):
 def test_plan_poses_cli(cdra, tmp_path, capsys):
     out = tmp_path / "plan.csv"
     argv = ["--count", "6", "--pool", "300", "--seed", "4", "--out", str(out)]
-    assert plan_main(argv) == 0
+    assert cli_main(["plan-poses", *argv]) == 0
     printed = capsys.readouterr().out
     assert "expected RMS accuracy" in printed and str(out) in printed
     lines = out.read_text().splitlines()
@@ -189,11 +189,11 @@ def test_plan_poses_cli(cdra, tmp_path, capsys):
     lim = cdra.state_limits
     assert np.all((states >= lim[:, 0]) & (states <= lim[:, 1]))
     # refuses to overwrite, and checks its flags
-    assert plan_main(argv) == 1
+    assert cli_main(["plan-poses", *argv]) == 1
     assert "exists" in capsys.readouterr().err
-    assert plan_main([*argv, "--force", "--noise-pos", "0.05"]) == 1
+    assert cli_main(["plan-poses", *argv, "--force", "--noise-pos", "0.05"]) == 1
     assert "go together" in capsys.readouterr().err
-    assert plan_main([*argv, "--force", "--criterion", "o1"]) == 0
+    assert cli_main(["plan-poses", *argv, "--force", "--criterion", "o1"]) == 0
     assert "by o1" in capsys.readouterr().out
 
 

@@ -15,14 +15,14 @@ import pytest
 
 from cdra_jax import (
     apply_frame_errors,
-    demo,
     lie,
     reproduction,
     tool_pose,
 )
+from cdra_jax.cli import demo as demo_cli
+from cdra_jax.cli import main
 from cdra_jax.identifiability import format_combination
-
-SMALL = demo.SMALL
+from cdra_jax.workflows.demo import SMALL
 
 
 @pytest.fixture(scope="module")
@@ -275,24 +275,26 @@ def test_bad_arguments(cdra):
 
 def test_demo_output_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    assert demo._output_folder(None, False).name == "cdra_demo_out"
-    (tmp_path / "cdra_demo_out" / "x.txt").write_text("keep")
-    assert demo._output_folder(None, False).name == "cdra_demo_out-2"
+    first = demo_cli.output_folder(None, False)
+    assert first.name.startswith("cdra-demo-") and first.is_dir()  # a new folder, never "."
+    (first / "x.txt").write_text("keep")
+    second = demo_cli.output_folder(None, False)
+    assert second != first and second.name.startswith(first.name[:18])
     with pytest.raises(FileExistsError, match="--force"):
-        demo._output_folder("cdra_demo_out", False)
-    assert demo._output_folder("cdra_demo_out", True).name == "cdra_demo_out"
-    assert demo.main(["--out", "cdra_demo_out"]) == 1  # refuses before computing anything
-    assert (tmp_path / "cdra_demo_out" / "x.txt").read_text() == "keep"
+        demo_cli.output_folder(str(first), False)
+    assert demo_cli.output_folder(str(first), True) == first
+    assert main(["demo", "--out-dir", str(first)]) == 1  # refuses before computing anything
+    assert (first / "x.txt").read_text() == "keep"
 
 
 def test_demo_writes_tables_and_figures(tmp_path, capsys, table, convergence, noise):
     # Runs after the studies above, whose compiled programs it reuses.
     out = tmp_path / "demo"
-    assert demo.main(["--out", str(out), "--seed", "0"]) == 0
+    assert main(["demo", "--out-dir", str(out), "--seed", "0"]) == 0
     printed = capsys.readouterr().out
-    for name in demo.OUTPUT_FILES:
+    for name in demo_cli.OUTPUT_FILES:
         assert (out / name).stat().st_size > 0, name
-    for name in demo.OUTPUT_FILES:
+    for name in demo_cli.OUTPUT_FILES:
         if name.endswith(".png"):
             assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "Table I" in printed and "Fig. 5" in printed and "Fig. 7" in printed

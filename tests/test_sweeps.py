@@ -21,7 +21,7 @@ from cdra_jax import (
     sweeps,
     tool_pose,
 )
-from cdra_jax.cli_sweep import main as sweep_main
+from cdra_jax.cli import main as cli_main
 from cdra_jax.modules import DEFAULT_MIN_MARGIN, arm_tension_closure
 from cdra_jax.simulation import simulate_trial
 from cdra_jax.sweeps import (
@@ -244,17 +244,18 @@ def test_cli_and_plot(table, tmp_path, capsys):
         "--solvers", "weighted", "--trials", "3", "--chunk", "4", "--seed", "7",
         "--verify", "10", "--out", str(out), "--plot", str(png), "--no-progress",
     ]  # fmt: skip
-    assert sweep_main(argv) == 0
+    assert cli_main(["sweep", *argv]) == 0
     printed = capsys.readouterr().out
     assert "6 trials" in printed and "weighted" in printed
     _assert_same_trials(table, read_sweep(out))
     assert png.stat().st_size > 1000
-    assert sweep_main(argv) == 1
+    assert cli_main(["sweep", *argv]) == 1
     assert "exists" in capsys.readouterr().err
-    assert sweep_main([*argv[:2], "--noise-rot", "0.001,0.002,0.003", *argv[4:], "--force"]) == 1
+    bad = [*argv[:2], "--noise-rot", "0.001,0.002,0.003", *argv[4:], "--force"]
+    assert cli_main(["sweep", *bad]) == 1
     assert "rotation levels" in capsys.readouterr().err
 
-    from cdra_jax.plots_sweeps import plot_sweep
+    from cdra_jax.plots import plot_sweep
 
     ax = plot_sweep(table, "param_err")
     assert len(ax.get_lines()) == 2  # one line per noise level for the one solver
@@ -360,7 +361,7 @@ def test_sweep_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys, extra
 
 
 def test_default_cpu_devices_pay_for_their_compilation():
-    from cdra_jax.cli_sweep import TRIALS_PER_EXTRA_DEVICE, default_cpu_devices
+    from cdra_jax.cli.sweep import TRIALS_PER_EXTRA_DEVICE, default_cpu_devices
     from cdra_jax.parallel import schedulable_cores
 
     assert default_cpu_devices(0) == default_cpu_devices(TRIALS_PER_EXTRA_DEVICE - 1) == 1

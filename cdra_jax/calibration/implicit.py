@@ -88,9 +88,7 @@ def _condition(kind: str, d: Array, frames: Array, poses: Array, measured: Array
     # LM's analytic Jacobian of the residual (closed-form left and right Jacobians of SE(3)):
     # the gradient J^T Y~ then needs first derivatives only, where autodiff's gradient would
     # be differentiated twice (a 4x larger program, 3x the compile time).
-    from .levenberg_marquardt import residual_jacobian  # (it imports this module)
-
-    Y, _, J = residual_jacobian(d, frames, P, T, noise)
+    Y, _, J = kernels.residual_jacobian(d, frames, P, T, noise)
     return J.T @ Y, jnp.sum(Y * Y)
 
 

@@ -17,6 +17,7 @@ the translations ``(3, m)`` in mm. The module poses of a trial are ``(K, 3, 4, m
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -357,3 +358,63 @@ def deviation_metrics(measured: Array, tool: Array) -> tuple[Array, Array]:
     """Eqs. 20-21 for pose stacks ``(3, 4, m)`` (see :func:`linearise` for Eq. 21)."""
     _, delta_p, delta_R = residual_and_metrics(measured, tool)
     return delta_p, delta_R
+
+
+def _sum6(term: Callable[[int], Array]) -> Array:
+    """``term(0) + ... + term(5)``."""
+    total = term(0)
+    for i in range(1, 6):
+        total = total + term(i)
+    return total
+
+
+def residual_jacobian(
+    X: Array, frames0: Array, poses: Array, measured: Array, noise: NoiseModel | None = None
+) -> tuple[Array, tuple[Array, Array], Array]:
+    """The LM residual at ``X``, the deviation metrics of its model and its Jacobian.
+
+    With ``T(X) = E_0 F_0 M_1 E_1 F_1 ... M_K E_K F_K``, ``E_j = exp(hat(X_j))`` and
+    ``Delta = T_meas T(X)^-1``, the residual is ``r = log(Delta)^v`` (Eq. 7) and, differentiating
+    ``E_j`` on the left (``d exp(xi) = hat(J_l(xi) d xi) exp(xi)``, ``J_l`` the left Jacobian of
+    SE(3)) and ``log`` on the right,
+
+        dr = -J_r^-1(r) [I, Ad(P_1), ..., Ad(P_K)] diag(J_l(X_0), ..., J_l(X_K)) dX,
+
+    where the middle factor is the paper's ``D`` (Eq. 8) at the frames ``F_j(X)`` and
+    ``J_r^-1(r) = d log(Delta exp(hat(e)))^v / de = J_l^-1(-r)`` at ``e = 0``, both in closed form
+    (:func:`se3_left_jacobian`); the test suite checks the product against
+    ``jax.jacfwd`` of the residual.
+
+    Args:
+        X: ``(6 (K+1),)`` error twists.
+        frames0: ``(K+1, 4, 4)`` nominal frames.
+        poses: ``(K, 3, 4, m)`` module poses (pose-last).
+        measured: ``(3, 4, m)`` measured tool poses (pose-last).
+        noise: whitening, or ``None``.
+
+    Returns:
+        ``(r (6m,), (delta_p, delta_R), J (6m, 6 (K+1)))``; ``r`` component-major
+        (``r.reshape(6, m)[:, k]`` is pose ``k``), as the rows of ``J``.
+    """
+    k1 = frames0.shape[0]
+    n = 6 * k1
+    xi = X.reshape(k1, 6)
+    frames = lie.se3_exp(xi) @ frames0
+    lin = linearise(frames, poses, measured)  # unwhitened: D = [I, Ad(P_i)] at F(X)
+    m = measured.shape[-1]
+    r = lin.Y.reshape(6, m)  # log(Delta)^v, Delta = T_meas T(X)^-1
+    jr_inv = se3_left_jacobian_inverse(-r)  # J_r^-1(r) = J_l^-1(-r): (6, 6, m)
+    jl = jnp.moveaxis(se3_left_jacobian(xi.T), -1, 0)  # (K+1, 6, 6)
+    DT = lin.DT.reshape(k1, 6, 6, m)  # (frame, column, row, pose): D_k^T
+    # The small contractions as explicit sums of 6 products over the pose axis (XLA turns
+    # einsums with the pose axis as a batch axis into transposes and tiny matrix products).
+    # (J_r^-1 D_k)^T = D_k^T J_r^-1^T: contract the row axis b.
+    A = _sum6(lambda b: DT[:, :, b, None, :] * jr_inv[None, None, :, b, :])
+    # diag(J_l)^T on the left: column c of frame j is sum_d J_l[j][d, c] (column d).
+    A = _sum6(lambda d: jl[:, d, :, None, None] * A[:, d, None, :, :])
+    J = -jnp.transpose(A.reshape(n, 6, m), (1, 2, 0))  # (row, pose, column)
+    if noise is not None:
+        r = whiten(r, measured, noise)
+        J = whiten(jnp.moveaxis(J, 2, 1), measured, noise)  # (row, column, pose)
+        J = jnp.moveaxis(J, 1, 2)
+    return r.reshape(6 * m), (lin.delta_p, lin.delta_R), J.reshape(6 * m, n)

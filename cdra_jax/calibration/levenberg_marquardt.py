@@ -51,7 +51,7 @@ Performance (see ``benchmarks/README.md``):
 
 * the residual is evaluated in the pose-last layout of :mod:`.kernels`, and returns the
   deviation metrics of its point as optimistix' ``aux``, so that recording them costs nothing;
-* its Jacobian is analytic (:func:`residual_jacobian`, a ``jax.custom_jvp`` in ``u``):
+* its Jacobian is analytic (:func:`.kernels.residual_jacobian`, a ``jax.custom_jvp`` in ``u``):
   optimistix linearises the residual at every step and its QR solver materialises the
   Jacobian, which with autodiff costs one forward-mode pass through the chain and the
   logarithm per column and here two small matrix products;
@@ -67,8 +67,6 @@ Performance (see ``benchmarks/README.md``):
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -166,62 +164,11 @@ def calibrate_lm(
     )
 
 
-def residual_jacobian(
-    X: Array, frames0: Array, poses: Array, measured: Array, noise: NoiseModel | None = None
-) -> tuple[Array, tuple[Array, Array], Array]:
-    """The LM residual at ``X``, the deviation metrics of its model and its Jacobian.
-
-    With ``T(X) = E_0 F_0 M_1 E_1 F_1 ... M_K E_K F_K``, ``E_j = exp(hat(X_j))`` and
-    ``Delta = T_meas T(X)^-1``, the residual is ``r = log(Delta)^v`` (Eq. 7) and, differentiating
-    ``E_j`` on the left (``d exp(xi) = hat(J_l(xi) d xi) exp(xi)``, ``J_l`` the left Jacobian of
-    SE(3)) and ``log`` on the right,
-
-        dr = -J_r^-1(r) [I, Ad(P_1), ..., Ad(P_K)] diag(J_l(X_0), ..., J_l(X_K)) dX,
-
-    where the middle factor is the paper's ``D`` (Eq. 8) at the frames ``F_j(X)`` and
-    ``J_r^-1(r) = d log(Delta exp(hat(e)))^v / de = J_l^-1(-r)`` at ``e = 0``, both in closed form
-    (:func:`.kernels.se3_left_jacobian`); the test suite checks the product against
-    ``jax.jacfwd`` of the residual.
-
-    Args:
-        X: ``(6 (K+1),)`` error twists.
-        frames0: ``(K+1, 4, 4)`` nominal frames.
-        poses: ``(K, 3, 4, m)`` module poses (pose-last, :mod:`.kernels`).
-        measured: ``(3, 4, m)`` measured tool poses (pose-last).
-        noise: whitening, or ``None``.
-
-    Returns:
-        ``(r (6m,), (delta_p, delta_R), J (6m, 6 (K+1)))``; ``r`` component-major
-        (``r.reshape(6, m)[:, k]`` is pose ``k``), as the rows of ``J``.
-    """
-    k1 = frames0.shape[0]
-    n = 6 * k1
-    xi = X.reshape(k1, 6)
-    frames = lie.se3_exp(xi) @ frames0
-    lin = kernels.linearise(frames, poses, measured)  # unwhitened: D = [I, Ad(P_i)] at F(X)
-    m = measured.shape[-1]
-    r = lin.Y.reshape(6, m)  # log(Delta)^v, Delta = T_meas T(X)^-1
-    jr_inv = kernels.se3_left_jacobian_inverse(-r)  # J_r^-1(r) = J_l^-1(-r): (6, 6, m)
-    jl = jnp.moveaxis(kernels.se3_left_jacobian(xi.T), -1, 0)  # (K+1, 6, 6)
-    DT = lin.DT.reshape(k1, 6, 6, m)  # (frame, column, row, pose): D_k^T
-    # The small contractions as explicit sums of 6 products over the pose axis (XLA turns
-    # einsums with the pose axis as a batch axis into transposes and tiny matrix products).
-    # (J_r^-1 D_k)^T = D_k^T J_r^-1^T: contract the row axis b.
-    A = _sum6(lambda b: DT[:, :, b, None, :] * jr_inv[None, None, :, b, :])
-    # diag(J_l)^T on the left: column c of frame j is sum_d J_l[j][d, c] (column d).
-    A = _sum6(lambda d: jl[:, d, :, None, None] * A[:, d, None, :, :])
-    J = -jnp.transpose(A.reshape(n, 6, m), (1, 2, 0))  # (row, pose, column)
-    if noise is not None:
-        r = kernels.whiten(r, measured, noise)
-        J = kernels.whiten(jnp.moveaxis(J, 2, 1), measured, noise)  # (row, column, pose)
-        J = jnp.moveaxis(J, 1, 2)
-    return r.reshape(6 * m), (lin.delta_p, lin.delta_R), J.reshape(6 * m, n)
-
-
 def _residual(
     X: Array, frames0: Array, poses: Array, measured: Array, noise: NoiseModel | None
 ) -> tuple[Array, tuple[Array, Array]]:
-    """The residual and deviation metrics of :func:`residual_jacobian`, without the Jacobian.
+    """The residual and deviation metrics of :func:`.kernels.residual_jacobian`, without its
+    Jacobian.
 
     The primal of the ``custom_jvp`` in :func:`_residual_fn`: JAX traces it next to the JVP
     rule, so keeping it free of the Jacobian's operations shortens the tracing.
@@ -241,20 +188,12 @@ def _residual(
 # lowered module differs only in the order of the loop's invariant operands); the first trace
 # of the vmapped LM solver took 0.12-0.35 s less (4 runs of 1.55-2.06 s, side by side).
 _residual_traced = jax.jit(_residual, inline=True)
-_residual_jacobian_traced = jax.jit(residual_jacobian, inline=True)
-
-
-def _sum6(term: Callable[[int], Array]) -> Array:
-    """``term(0) + ... + term(5)``."""
-    total = term(0)
-    for i in range(1, 6):
-        total = total + term(i)
-    return total
+_residual_jacobian_traced = jax.jit(kernels.residual_jacobian, inline=True)
 
 
 def _residual_fn(frames0, poses, measured, noise, basis):
     """``u -> (r, (delta_p, delta_R))`` at ``X = basis @ u`` for optimistix, with the analytic
-    Jacobian ``J(X) basis`` (:func:`residual_jacobian`) as its JVP."""
+    Jacobian ``J(X) basis`` (:func:`.kernels.residual_jacobian`) as its JVP."""
 
     @jax.custom_jvp
     def residual(u):

@@ -6,8 +6,6 @@ reports the one the data support (or ``none``, or ``unattributed`` with a locati
 physical parameters and the held-out improvement. See :mod:`.core` for the method.
 """
 
-from .command import register as register
-from .command import run as run
 from .core import diagnose as diagnose
 from .core import diagnose_files as diagnose_files
 from .result import CandidateRow as CandidateRow

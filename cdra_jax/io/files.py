@@ -17,7 +17,7 @@ import json
 import os
 import tempfile
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
@@ -168,3 +168,44 @@ def json_text(obj: Any) -> str:
 
 def _is_number(v: Any) -> bool:
     return v is None or (isinstance(v, int | float) and not isinstance(v, bool))
+
+
+def check_output(path: str | os.PathLike | None, force: bool, flag: str) -> None:
+    """Fail before any work when an output file exists (no ``--force``), is a folder, or its
+    folder is missing (outputs never create folders)."""
+    if path is None:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise IsADirectoryError(f"{flag} {p}: is a folder, expected a file name")
+    if p.exists() and not force:
+        raise FileExistsError(f"{p}: file exists; refusing to overwrite it (pass --force)")
+    if not (p.parent if str(p.parent) else Path(".")).is_dir():
+        raise FileNotFoundError(f"{flag} {p}: folder {p.parent} does not exist")
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether paths ``a`` and ``b`` name the same file (``os.path.samefile`` when both exist,
+    so links and hard links count; else the resolved paths)."""
+    pa, pb = Path(a), Path(b)
+    try:
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+    except OSError:
+        pass
+    return pa.resolve() == pb.resolve()
+
+
+def check_distinct_files(
+    outputs: Iterable[tuple[str, str | os.PathLike | None]],
+    inputs: Iterable[tuple[str, str | os.PathLike | None]] = (),
+) -> None:
+    """Refuse an output that names the same file as an input or as another output, before any
+    work: ``ValueError("--out and --data name the same file")``. Pairs are ``(flag, path)``;
+    a ``None`` path is skipped."""
+    outs = [(f, p) for f, p in outputs if p is not None]
+    ins = [(f, p) for f, p in inputs if p is not None]
+    for i, (flag, path) in enumerate(outs):
+        for other, q in [*ins, *outs[:i]]:
+            if same_file(path, q):
+                raise ValueError(f"{flag} and {other} name the same file")

@@ -13,7 +13,7 @@ has for it (``<module>.<suffix>``):
 Adding a source (or finishing :class:`CableLengths`) touches only this file: subclass
 :class:`StateSource`, implement :meth:`~StateSource.claims`, :meth:`~StateSource.columns` and
 :meth:`~StateSource.to_state`, and list it in :data:`STATE_SOURCES`. ``to_state`` receives the
-values of its columns for every row and a :class:`~cdra_jax.io.measurements.RowContext` whose
+values of its columns for every row and a :class:`~cdra_jax.io.rows.RowContext` whose
 ``error(what, column=..., row=...)`` builds the error to raise, naming the file, the line (the
 row's, or the header's when ``row`` is ``None``) and the column.
 """
@@ -22,14 +22,12 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
 from ..arm import Module
-
-if TYPE_CHECKING:
-    from .measurements import RowContext
+from .rows import RowContext
 
 _JOINT_SUFFIXES = {"spherical": ("rx", "ry", "rz"), "revolute": ("q",), "prismatic": ("q",)}
 _CABLE_SUFFIX = re.compile(r"l([1-9][0-9]*)")

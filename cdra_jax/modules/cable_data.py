@@ -271,8 +271,8 @@ def module_states_from_cable_lengths(
         residual_tol: RMS residual (mm) above which a row is impossible.
 
     Raises:
-        ValueError: for the first bad row, e.g. ``"m.csv: line 7, column shoulder.l3: cable
-        length -2.0 mm is not positive"``.
+        ValueError: for the first bad row, e.g. ``"m.csv: line 7, column shoulder.l3:
+            cable length -2.0 mm is not positive"``.
     """
     states, _, problems = check_cable_lengths(module, lengths, residual_tol=residual_tol)
     if problems:

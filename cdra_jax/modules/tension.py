@@ -47,8 +47,7 @@ import numpy as np
 from jax import Array, lax
 from jax.typing import ArrayLike
 
-from ..arm import Arm, Module
-from ..simulation import sample_states
+from ..arm import Arm, Module, sample_states
 from .cables import cable_vectors, require_cables
 
 DEFAULT_MIN_MARGIN = 0.05

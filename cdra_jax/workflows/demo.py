@@ -1,38 +1,31 @@
-"""``cdra-jax demo``: regenerate the paper's Table I, Fig. 5 and Fig. 7 on the default CDRA.
+"""The demo workflow: the paper's Table I, Fig. 5 and Fig. 7 regenerated on the default CDRA.
 
-Runs the three studies of :mod:`cdra_jax.reproduction` on the embedded default model, prints
-their tables next to the paper's numbers and writes the figures (PNG), the printed report and a
-JSON summary into an output folder. The default sizes finish in about half a minute on two idle
-CPU cores, JIT compilation (most of it) included; ``--full`` runs the sizes of the notebook
-(``notebooks/01_paper_reproduction.ipynb``): 1000 trials per pose count, m = 4 ... 40.
-
-The command-line tool wires :func:`register` into its subcommands; :func:`main` runs the demo
-with its own parser (``python -m cdra_jax.demo --help``).
+:func:`demo` runs the three studies of :mod:`cdra_jax.reproduction` on the embedded default
+model and returns a :class:`DemoRun`: their tables next to the paper's numbers (:meth:`DemoRun.
+report`), a JSON summary, and the figures. The default sizes finish in about half a minute on
+two CPU cores, JIT compilation (most of it) included; ``full=True`` runs the sizes of
+``notebooks/01_paper_reproduction.ipynb``: 1000 trials per pose count, m = 4 ... 40.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import json
-import sys
+import os
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import equinox as eqx
 import numpy as np
+from matplotlib.figure import Figure
 
-OUTPUT_FILES: tuple[str, ...] = (
-    "report.txt",
-    "summary.json",
-    "fig5_convergence.png",
-    "fig7_noise.png",
-    "fig7_parameter_error.png",
-)
-"""What the demo writes into its output folder."""
-
-DEFAULT_OUT = "cdra_demo_out"
+from .. import plots, reproduction
+from ..io import default_arm, save_figure_atomic, write_text_atomic
+from ..io.results import package_version
+from .inputs import check_seed
 
 
 class DemoSizes(eqx.Module):
@@ -67,70 +60,15 @@ FULL = DemoSizes(
 """``--full``: the notebook's sizes (1000 trials per pose count, m = 4 ... 40, 40 held out)."""
 
 
-def _add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--full",
-        action="store_true",
-        help="notebook sizes: 1000 trials per pose count, m = 4..40 (several minutes)",
-    )
-    p.add_argument(
-        "--out",
-        metavar="DIR",
-        default=None,
-        help=f"output folder (default: a new ./{DEFAULT_OUT}, or ./{DEFAULT_OUT}-2, ... if taken)",
-    )
-    p.add_argument(
-        "--force",
-        action="store_true",
-        help="write into an existing non-empty --out folder, overwriting the demo's own files",
-    )
-    p.add_argument("--seed", type=int, default=0, help="PRNG seed of all studies (default 0)")
-
-
-def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``demo`` subcommand to an ``argparse`` subparsers object (``func=run``)."""
-    p = subparsers.add_parser(
-        "demo",
-        help="regenerate the paper's Table I, Fig. 5 and Fig. 7 on the default CDRA",
-        description=__doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1],
-    )
-    _add_arguments(p)
-    p.set_defaults(func=run)
-    return p
-
-
-def _output_folder(out: str | None, force: bool) -> Path:
-    """The folder to write into, created; never one whose files would be overwritten silently."""
-    if out is None:
-        base = Path(DEFAULT_OUT)
-        candidates = [base] + [Path(f"{DEFAULT_OUT}-{i}") for i in range(2, 1000)]
-        for c in candidates:
-            if not c.exists() or (c.is_dir() and not any(c.iterdir())):
-                c.mkdir(parents=True, exist_ok=True)
-                return c
-        raise FileExistsError(f"no free output folder {DEFAULT_OUT}[-N] here; pass --out DIR")
-    path = Path(out)
-    if path.exists() and not path.is_dir():
-        raise FileExistsError(f"--out {out}: exists and is not a folder")
-    if path.exists() and any(path.iterdir()) and not force:
-        raise FileExistsError(
-            f"--out {out}: folder exists and is not empty; pass --force to overwrite the demo's "
-            f"files in it ({', '.join(OUTPUT_FILES)})"
-        )
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
 def _summary(table, conv, noise, sizes: DemoSizes, seed: int, timings: dict) -> dict:
     """JSON-ready numbers of the three studies."""
-    from . import __version__
 
     def band(a, b, c):
         return {"median": a.tolist(), "p10": b.tolist(), "p90": c.tolist()}
 
     metrics = ("dp_measured", "dR_measured", "dp_true", "dR_true", "param_v", "param_w")
     return {
-        "cdra_jax_version": __version__,
+        "cdra_jax_version": package_version(),
         "seed": seed,
         "sizes": {f.name: getattr(sizes, f.name) for f in dataclasses.fields(sizes)},
         "time_s": timings,
@@ -177,47 +115,106 @@ def _summary(table, conv, noise, sizes: DemoSizes, seed: int, timings: dict) -> 
     }
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the demo for parsed arguments (``full``, ``out``, ``force``, ``seed``); exit status."""
-    import jax
+@dataclasses.dataclass(frozen=True, eq=False)
+class DemoRun:
+    """The three studies of the demo and their report.
 
-    jax.config.update("jax_enable_x64", True)
+    Attributes:
+        table: Table I (:class:`~cdra_jax.reproduction.TableOne`).
+        convergence: Fig. 5 (:class:`~cdra_jax.reproduction.ConvergenceStudy`).
+        noise: Fig. 7 (:class:`~cdra_jax.reproduction.NoiseStudy`).
+        sizes: the study sizes used.
+        seed: the PRNG seed of all studies.
+        timings: wall and CPU seconds per study (JIT compilation included).
+        report_lines: the report's sections, in order.
+    """
+
+    table: Any
+    convergence: Any
+    noise: Any
+    sizes: DemoSizes
+    seed: int
+    timings: dict[str, dict[str, float]]
+    report_lines: tuple[str, ...]
+
+    def report(self) -> str:
+        """The tables next to the paper's numbers and the timings (what ``demo`` prints)."""
+        return "\n".join(self.report_lines)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready numbers of the three studies (``summary.json``)."""
+        return _summary(
+            self.table, self.convergence, self.noise, self.sizes, self.seed, self.timings
+        )
+
+    def to_json(self) -> str:
+        """:meth:`to_dict` as JSON text."""
+        return json.dumps(self.to_dict(), indent=1, default=_json_default) + "\n"
+
+    def figures(self) -> dict[str, Figure]:
+        """Fig. 5 and the two panels of Fig. 7, by output file name."""
+        return {
+            "fig5_convergence.png": plots.convergence_figure(self.convergence),
+            "fig7_noise.png": plots.noise_figure(self.noise),
+            "fig7_parameter_error.png": plots.parameter_error_figure(self.noise),
+        }
+
+    def plot(self) -> Figure:
+        """Fig. 7: held-out accuracy against the number of calibration poses."""
+        return plots.noise_figure(self.noise)
+
+    def save(self, folder: str | os.PathLike, *, force: bool = False) -> list[Path]:
+        """Write ``report.txt``, ``summary.json`` and the three figures (PNG) into an existing
+        ``folder``; returns the paths."""
+        folder = Path(folder)
+        out = [
+            write_text_atomic(folder / "report.txt", self.report() + "\n", force=force),
+            write_text_atomic(folder / "summary.json", self.to_json(), force=force),
+        ]
+        for name, fig in self.figures().items():
+            out.append(save_figure_atomic(fig, folder / name, force=force, dpi=120))
+        return out
+
+
+def demo(
+    *,
+    full: bool = False,
+    seed: int = 0,
+    log: Callable[[str], None] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> DemoRun:
+    """Regenerate the paper's Table I, Fig. 5 and Fig. 7 on the embedded default arm.
+
+    Args:
+        full: the notebook's sizes (:data:`FULL`, several minutes) instead of :data:`SMALL`.
+        seed: PRNG seed of all studies.
+        log: called with each section of the report as soon as it is computed (the command
+            line prints them as they come).
+        progress: called with a short line after each pose count of Fig. 7.
+    """
+    check_seed(seed)
     t_start, c_start = time.perf_counter(), time.process_time()
-    from .cli_common import check_seed
-
-    try:  # file problems: one error line and exit 1, as every command (before any work)
-        check_seed(args.seed)
-        out = _output_folder(args.out, args.force)
-    except (ValueError, OSError) as e:
-        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 1
-
-    from . import plots, reproduction
-    from .io import default_arm, save_figure_atomic, write_text_atomic
-
-    sizes = FULL if args.full else SMALL
-    seed = int(args.seed)
+    sizes = FULL if full else SMALL
     arm = default_arm()
     timings: dict[str, float] = {}
     cpu: dict[str, float] = {}
     report: list[str] = []
 
     def emit(text: str) -> None:
-        print(text, flush=True)
         report.append(text)
+        if log is not None:
+            log(text)
 
     @contextlib.contextmanager
     def timed(name: str):
-        """Record the wall and CPU seconds of the ``with`` body under ``name``."""
         t, c = time.perf_counter(), time.process_time()
         yield
         timings[name], cpu[name] = time.perf_counter() - t, time.process_time() - c
 
     emit(
         f"cdra-jax demo: the paper's evidence regenerated on the default model {arm.name!r} "
-        f"({'full' if args.full else 'small'} sizes, seed {seed}); output folder: {out}"
+        f"({'full' if full else 'small'} sizes, seed {seed})"
     )
-
     with timed("table_1"):
         table = reproduction.table_one(
             arm,
@@ -228,7 +225,6 @@ def run(args: argparse.Namespace) -> int:
         )
     emit("")
     emit(reproduction.format_table_one(table))
-
     with timed("fig_5"):
         conv = reproduction.convergence_study(
             arm,
@@ -239,7 +235,6 @@ def run(args: argparse.Namespace) -> int:
         )
     emit("")
     emit(reproduction.format_convergence(conv))
-
     with timed("fig_7"):
         t = time.perf_counter()
         noise = reproduction.noise_study(
@@ -250,37 +245,27 @@ def run(args: argparse.Namespace) -> int:
             pad_to=sizes.noise_pad_to,
             seed=seed,
             fast_compile=sizes.fast_compile,
-            progress=lambda m: print(
-                f"  Fig. 7: m = {m} done ({time.perf_counter() - t:.0f} s)", file=sys.stderr
-            ),
+            progress=None
+            if progress is None
+            else lambda m: progress(f"  Fig. 7: m = {m} done ({time.perf_counter() - t:.0f} s)"),
         )
     emit("")
     emit(reproduction.format_noise_study(noise))
-
-    with timed("figures"):
-        figures = {
-            "fig5_convergence.png": plots.convergence_figure(conv),
-            "fig7_noise.png": plots.noise_figure(noise),
-            "fig7_parameter_error.png": plots.parameter_error_figure(noise),
-        }
-        for name, fig in figures.items():
-            save_figure_atomic(fig, out / name, force=args.force, dpi=120)
     timings["total"], cpu["total"] = time.perf_counter() - t_start, time.process_time() - c_start
-
     emit("")
     emit(
         "time in s, JIT compilation included (wall / CPU of this process): "
         + ", ".join(f"{k} {v:.1f} / {cpu[k]:.1f}" for k, v in timings.items())
     )
-    write_text_atomic(out / "report.txt", "\n".join(report) + "\n", force=args.force)
-    summary = _summary(table, conv, noise, sizes, seed, {"wall": timings, "cpu": cpu})
-    write_text_atomic(
-        out / "summary.json",
-        json.dumps(summary, indent=1, default=_json_default) + "\n",
-        force=args.force,
+    return DemoRun(
+        table=table,
+        convergence=conv,
+        noise=noise,
+        sizes=sizes,
+        seed=seed,
+        timings={"wall": timings, "cpu": cpu},
+        report_lines=tuple(report),
     )
-    print(f"wrote {', '.join(OUTPUT_FILES)} to {out.resolve()}")
-    return 0
 
 
 def _json_default(o):
@@ -289,17 +274,3 @@ def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Run the demo with its own parser (``argv`` without the program name)."""
-    parser = argparse.ArgumentParser(
-        prog="cdra-jax demo",
-        description=__doc__.split("\n\n")[0],
-    )
-    _add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -7,30 +7,19 @@ Usage::
         [--plot fig.png] [--seed 0] [--model M] [--d-v 1 --d-w 0.05] [--verify 50]
         [--no-progress] [--force]
 
-``--noise-rot`` takes one value for all position levels or one per level; ``0`` and ``0`` is the
-noise-free level. Module states are drawn within the joint limits and, where the model has
-cables, with tension closure in every cabled module (:func:`cdra_jax.simulation.sample_poses`, the
-paper's Section V step 1). Writes the tidy per-trial table (:mod:`cdra_jax.sweeps`; ``.csv``, or
-``.parquet`` where pyarrow is installed) and prints the median held-out accuracy per cell.
-Provides ``register(subparsers)`` and ``run(args)`` for :mod:`cdra_jax.cli`, and ``main(argv)``.
+A thin layer over :func:`cdra_jax.workflows.sweep`. ``--noise-rot`` takes one value for all
+position levels or one per level; ``0`` and ``0`` is the noise-free level. Writes the tidy
+per-trial table (``.csv``, or ``.parquet`` where pyarrow is installed) and prints the median
+held-out accuracy per cell. Progress: a bar on a terminal, plain lines on stderr otherwise.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-from collections.abc import Sequence
 from pathlib import Path
 
-from .cli_common import (
-    check_at_least,
-    check_distinct_files,
-    check_non_negative,
-    check_output,
-    check_seed,
-    load_arm,
-    standalone_main,
-)
+from ..io.files import check_distinct_files, check_output
+from . import common
 
 
 def _floats(text: str) -> list[float]:
@@ -66,7 +55,7 @@ compilation is paid back after about 60,000 trials (``docs``: README, sweeps, "B
 def default_cpu_devices(trials_per_cell: int) -> int:
     """CPU devices for a sweep: one per :data:`TRIALS_PER_EXTRA_DEVICE` trials of a cell (at
     least 1), at most one per core."""
-    from .parallel import schedulable_cores
+    from ..parallel import schedulable_cores
 
     return max(1, min(schedulable_cores(), trials_per_cell // TRIALS_PER_EXTRA_DEVICE))
 
@@ -97,7 +86,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         metavar="S,...",
         type=_names,
         default=["paper", "weighted", "lm"],
-        help="any of paper, weighted, lm (default: all three)",
+        help="any of paper, weighted, lm, the solver names of calibrate (default: all three)",
     )
     p.add_argument("--trials", metavar="N", type=int, required=True, help="trials per cell")
     p.add_argument("--chunk", metavar="C", type=int, default=4096, help="trials per batch (4096)")
@@ -115,8 +104,12 @@ def register(subparsers) -> argparse.ArgumentParser:
         f"{TRIALS_PER_EXTRA_DEVICE} trials of a cell, at most one per core: each device costs "
         "one more compilation)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress (default: a bar on a terminal, plain lines on stderr otherwise)",
+    )
+    common.add_force_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -125,12 +118,13 @@ def run(args: argparse.Namespace) -> int:
     """Run ``sweep``; returns the exit code (0)."""
     # Every check of the arguments and the output files before any work.
     for flag, n in (("--trials", args.trials), ("--verify", args.verify), ("--chunk", args.chunk)):
-        check_at_least(flag, n)
-    if args.cpu_devices is not None:
-        check_at_least("--cpu-devices", args.cpu_devices)
-    check_non_negative("--d-v", args.d_v)
-    check_non_negative("--d-w", args.d_w)
-    check_seed(args.seed)
+        if n < 1:
+            raise ValueError(f"{flag} must be >= 1, got {n}")
+    if args.cpu_devices is not None and args.cpu_devices < 1:
+        raise ValueError(f"--cpu-devices must be >= 1, got {args.cpu_devices}")
+    for flag, v in (("--d-v", args.d_v), ("--d-w", args.d_w)):
+        if not 0 <= v < float("inf"):
+            raise ValueError(f"{flag} must be a non-negative number, got {v}")
     out = Path(args.out)
     if out.suffix.lower() not in (".csv", ".parquet"):
         raise ValueError(f"{out}: --out must end in .csv or .parquet")
@@ -140,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
 
     import jax
 
-    from .parallel import use_cpu_devices
+    from ..parallel import use_cpu_devices
 
     # Before JAX starts: every core as a CPU device (no effect on a GPU host's devices). Called
     # from a process where JAX already runs (e.g. a notebook), the default keeps its devices.
@@ -152,53 +146,27 @@ def run(args: argparse.Namespace) -> int:
         except RuntimeError:
             pass
     jax.config.update("jax_enable_x64", True)
-    from .sweeps import parse_noise_levels, run_sweep
+    from ..io import save_figure_atomic
+    from ..workflows import sweep
+    from ..workflows.inputs import check_seed
 
-    levels = parse_noise_levels(args.noise_pos, args.noise_rot)
-    arm, label = load_arm(args.model)
-    table = run_sweep(
-        arm,
-        levels,
+    result = sweep(
+        args.model,
+        args.noise_pos,
+        args.noise_rot,
         args.poses,
-        args.solvers,
-        args.trials,
-        seed=args.seed,
+        solvers=args.solvers,
+        trials=args.trials,
+        seed=check_seed(args.seed, "--seed"),
         chunk=args.chunk,
         d_v=args.d_v,
         d_w=args.d_w,
-        m_verify=args.verify,
+        verify=args.verify,
         progress=not args.no_progress,
     )
-    table.meta["model"] = label
-    table.save(out, force=args.force)
-    print(
-        f"{len(table)} trials in {float(table.meta['seconds']):.1f} s on "
-        f"{table.meta['devices']}; median held-out dp (mm) / dR (rad), converged fraction:"
-    )
-    dp = table.summary("dp_heldout")
-    dR = table.summary("dR_heldout")
-    print(f"  {'noise mm':>9} {'noise rad':>9} {'solver':>8} {'m':>4} {'dp':>10} {'dR':>10} conv")
-    for a, b in zip(dp, dR, strict=True):
-        print(
-            f"  {a['noise_pos']:9g} {a['noise_rot']:9g} {a['solver']:>8} {a['m']:4d} "
-            f"{a['q50']:10.4g} {b['q50']:10.4g} {a['converged']:.3f}"
-        )
-    print(f"wrote {out}")
+    result.save(out, force=args.force)
+    lines = [result.report(), common.wrote(out)]
     if args.plot:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        from .plots_sweeps import plot_sweep_figure
-
-        plot_sweep_figure(table, path=args.plot, force=args.force)
-        print(f"wrote {args.plot}")
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Stand-alone entry point (``python -m cdra_jax.cli_sweep ...``), as ``cdra-jax sweep``."""
-    return standalone_main("sweep", register, argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        lines.append(common.wrote(save_figure_atomic(result.plot(), args.plot, force=args.force)))
+    print("\n".join(lines))
+    return common.EXIT_OK

@@ -1,6 +1,6 @@
 """Figures of noise-sensitivity sweeps (:mod:`cdra_jax.sweeps`): medians with 10-90 % bands.
 
-Matplotlib is imported when a function is called, not on import.
+Drawn on bare figures (:mod:`.canvas`): no pyplot, no global state.
 """
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .io.files import save_figure_atomic
-from .sweeps import METRIC_UNITS, SweepTable
+from ..io.files import save_figure_atomic
+from ..sweeps import METRIC_UNITS, SweepTable
+from .canvas import new_figure
 
 _LINESTYLES = {"paper": "-", "weighted": "--", "lm": ":"}
 
@@ -45,14 +46,12 @@ def plot_sweep(
     Returns:
         The axes.
     """
-    import matplotlib.pyplot as plt
-
     if ax is None:
-        _, ax = plt.subplots(figsize=(6, 4))
+        ax = new_figure(6, 4).add_subplot()
     lo, hi = band
     rows = table.summary(metric, (lo, 0.5, hi), converged_only=converged_only)
     colours: dict[tuple[float, float], str] = {}
-    cycle = plt.rcParams["axes.prop_cycle"].by_key().get("color", ["C0"])
+    cycle = [f"C{i}" for i in range(10)]
     for sp, sr, solver in table.groups():
         mine = [
             r for r in rows if (r["noise_pos"], r["noise_rot"], r["solver"]) == (sp, sr, solver)
@@ -105,12 +104,9 @@ def plot_sweep_figure(
     Returns:
         The figure.
     """
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.2), squeeze=False)
-    for ax, metric in zip(axes[0], metrics, strict=True):
-        plot_sweep(table, metric, ax=ax, **kwargs)
-    fig.tight_layout()
+    fig = new_figure(6 * len(metrics), 4.2)
+    for i, metric in enumerate(metrics):
+        plot_sweep(table, metric, ax=fig.add_subplot(1, len(metrics), i + 1), **kwargs)
     if path is not None:
         save_figure_atomic(fig, path, force=force, dpi=120)
     return fig

@@ -19,12 +19,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from .arm import Arm
-from .io.files import OutputExistsError, save_figure_atomic
-from .io.measurements import Measurements
+from ..arm import Arm
+from ..io.files import OutputExistsError, save_figure_atomic
+from ..io.measurements import Measurements
+from .canvas import new_figure
 
 
 def regressors(arm: Arm, meas: Measurements) -> dict[str, np.ndarray]:
@@ -32,7 +32,7 @@ def regressors(arm: Arm, meas: Measurements) -> dict[str, np.ndarray]:
     ``payload_kg``, ...), the norm of the gravity torque each module carries."""
     import jax.numpy as jnp
 
-    from .modules.statics import gravity_torques
+    from ..modules.statics import gravity_torques
 
     out = {name: np.asarray(meas.q[:, j]) for j, name in enumerate(arm.state_names)}
     for k, v in meas.aux.items():
@@ -47,9 +47,7 @@ def regressors(arm: Arm, meas: Measurements) -> dict[str, np.ndarray]:
 
 
 def _figure(w: float, h: float) -> Figure:
-    fig = Figure(figsize=(w, h), layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
+    return new_figure(w, h)
 
 
 def residual_vs_regressors_figure(arm: Arm, meas: Measurements, diagnosis) -> Figure:

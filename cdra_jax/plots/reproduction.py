@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 from matplotlib.axes import Axes
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from .reproduction import PAPER_FLAT_POSES, ConvergenceStudy, NoiseStudy
+from ..reproduction import PAPER_FLAT_POSES, ConvergenceStudy, NoiseStudy
+from .canvas import new_figure
 
 SOLVER_STYLE: dict[str, dict] = {
     "paper": {"color": "C0", "label": "paper solver (unweighted, Eq. 10)"},
@@ -27,8 +27,7 @@ def _figure(
     ncols: int, width: float = 11.0, height: float = 4.8, bottom: float = 0.12
 ) -> tuple[Figure, list[Axes]]:
     # A fixed layout (no constrained/tight layout: it doubles the drawing time).
-    fig = Figure(figsize=(width, height))
-    FigureCanvasAgg(fig)
+    fig = new_figure(width, height, layout=None)
     fig.subplots_adjust(left=0.07, right=0.98, top=0.86, bottom=bottom, wspace=0.22)
     axes = [fig.add_subplot(1, ncols, i + 1) for i in range(ncols)]
     return fig, axes

@@ -1,0 +1,110 @@
+"""``cdra-jax calibrate``: identify the fixed-frame errors of a model from a measurement CSV.
+
+A thin layer over :func:`cdra_jax.workflows.calibrate`: prints its report, writes the result
+JSON, prints each warning as one ``warning: ...`` line on stderr, and exits with 3 when the
+solver did not converge (the result file is still written, with ``"converged": false``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..io.files import check_distinct_files, check_output
+from . import common
+
+SOLVER_HELP = (
+    "paper: the paper's unweighted iterative least squares (Eqs. 9-14); weighted: the same "
+    "iteration whitened by the noise model (needs --noise-pos/--noise-rot); lm: "
+    "Levenberg-Marquardt, whitened when a noise model is given (default: weighted with a noise "
+    "model, else paper)"
+)
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``calibrate`` subcommand."""
+    p = subparsers.add_parser(
+        "calibrate",
+        help="identify the fixed-frame errors of a model from a measurement CSV",
+        description=(
+            "Calibrate the fixed transforms of a modular arm from measured tool poses "
+            "(Mustafa et al. 2008, Eqs. 7-21) and write the result as JSON. Exit code 3 when "
+            "the solver did not converge (the result is still written)."
+        ),
+    )
+    common.add_model_option(p)
+    p.add_argument("--data", metavar="D", required=True, help="measurement CSV file")
+    p.add_argument("--out", metavar="R", required=True, help="result JSON file to write")
+    p.add_argument("--solver", choices=("paper", "weighted", "lm"), default=None, help=SOLVER_HELP)
+    common.add_noise_options(p, "of the measured tool poses, to weight the residual")
+    p.add_argument(
+        "--loss",
+        choices=("ls", "huber", "cauchy"),
+        default="ls",
+        help="ls: plain least squares, as in the paper (default); huber or cauchy: robust "
+        "estimation that down-weights outlying poses (iteratively reweighted, around --solver)",
+    )
+    p.add_argument(
+        "--reject-outliers",
+        action="store_true",
+        help="with --loss huber|cauchy: finish with a least-squares refit that leaves out the "
+        "flagged poses (kept only when it loses no identifiable direction; they stay in the "
+        "result)",
+    )
+    p.add_argument(
+        "--max-iterations",
+        metavar="N",
+        type=int,
+        help="iteration cap (default: 20 for paper/weighted, 50 for lm; per round for a "
+        "robust loss)",
+    )
+    p.add_argument("--plot", metavar="PNG", help="also write the residual figure")
+    common.add_force_option(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``calibrate``; returns the exit code."""
+    noise = common.noise(args)
+    if args.max_iterations is not None and args.max_iterations < 1:
+        raise ValueError(f"--max-iterations must be at least 1, got {args.max_iterations}")
+    if args.reject_outliers and args.loss == "ls":
+        raise ValueError(
+            "--reject-outliers needs a robust loss to flag the outliers: add --loss huber or "
+            "--loss cauchy"
+        )
+    if args.solver == "weighted" and noise is None:
+        raise ValueError(
+            "--solver weighted whitens the residual by the measuring device's noise: give "
+            "--noise-pos and --noise-rot"
+        )
+    check_distinct_files(
+        [("--out", args.out), ("--plot", args.plot)],
+        [("--data", args.data), ("--model", args.model)],
+    )
+    check_output(args.out, args.force, "--out")
+    check_output(args.plot, args.force, "--plot")
+
+    from ..io import save_figure_atomic
+    from ..workflows import calibrate
+
+    run_ = calibrate(
+        args.model,
+        args.data,
+        solver=args.solver,
+        noise=noise,
+        loss=args.loss,
+        reject_outliers=args.reject_outliers,
+        max_iterations=args.max_iterations,
+    )
+    print(run_.report())
+    print(common.wrote(run_.save(args.out, force=args.force)))
+    if args.plot:
+        print(common.wrote(save_figure_atomic(run_.plot(), args.plot, force=args.force)))
+    for w in run_.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    if not run_.converged:
+        print(f"warning: not converged: {run_.result['message']}", file=sys.stderr)
+        return common.EXIT_NOT_CONVERGED
+    return common.EXIT_OK

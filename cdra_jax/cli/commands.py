@@ -1,0 +1,80 @@
+"""The ``cdra-jax`` command line: one subcommand per workflow of :mod:`cdra_jax.workflows`.
+
+Exit codes (:mod:`.common`): 0 success; 1 bad input or a file problem (one line ``error: ...`` on
+stderr, no traceback); 2 wrong usage (argparse); 3 a calibration that did not converge (the
+result file is still written, with ``"converged": false``). Warnings (implausible data, a
+degenerate or poorly conditioned pose set, outliers) do not change the exit code: each is one
+``warning: ...`` line on stderr and an entry of ``warnings`` in the result file.
+
+Adding a subcommand: a module of this package with ``register(subparsers)`` and ``run(args)``,
+appended to :data:`SUBCOMMANDS`.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from types import ModuleType
+
+from . import calibrate, common, demo, diagnose, plan_poses, simulate, sweep, validate
+
+SUBCOMMANDS: tuple[ModuleType, ...] = (
+    demo,
+    simulate,
+    calibrate,
+    validate,
+    diagnose,
+    sweep,
+    plan_poses,
+)
+"""The subcommand modules, in the order ``--help`` lists them."""
+
+
+def build_parser():
+    """The ``cdra-jax`` argument parser with every subcommand of :data:`SUBCOMMANDS`."""
+    import argparse
+
+    from ..io.results import package_version
+
+    parser = argparse.ArgumentParser(
+        prog="cdra-jax",
+        description="Kinematic calibration of serial and modular (cable-driven) robot arms "
+        "(Mustafa et al., ICRA 2008). Units: mm, rad.",
+    )
+    parser.add_argument("--version", action="version", version=f"cdra-jax {package_version()}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in SUBCOMMANDS:
+        before = set(subparsers.choices)
+        module.register(subparsers)
+        for name in set(subparsers.choices) - before:  # func defaults to the module's run
+            if subparsers.choices[name].get_default("func") is None:
+                subparsers.choices[name].set_defaults(func=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``cdra-jax`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code.
+
+    Enables ``jax_enable_x64`` before running any subcommand and turns ``ValueError``,
+    ``OSError`` and a failed run-time check inside compiled code into one ``error: ...`` line.
+    """
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help, --version, usage errors
+        return int(e.code or 0) if not isinstance(e.code, str) else common.EXIT_USAGE
+    try:
+        return int(args.func(args) or 0)
+    except Exception as e:  # user errors (common.user_error_line) only; the rest raises
+        line = common.user_error_line(e)
+        if line is None:
+            raise
+        print(line, file=sys.stderr)
+        return common.EXIT_ERROR
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,400 @@
+"""The calibrate workflow: model + measurements -> identified frame errors, checked and reported.
+
+:func:`calibrate` runs, in order: the plausibility checks of the data (wrong units or
+conventions stop with an error naming the column; the rest warns), the solve (the paper's
+iterative least squares, Eqs. 9-19, its noise-weighted form, or Levenberg-Marquardt; optionally a
+robust loss around it), the identifiability analysis at the nominal model (rank and the named
+unidentifiable combinations), the conditioning check, the parameter uncertainty (with a noise
+model), the outlier flags, and the implausibly-large-error check. It returns a
+:class:`CalibrationRun` whose :meth:`~CalibrationRun.to_dict` is the result file contract of
+``shared/design.md`` and whose :meth:`~CalibrationRun.report` is what ``cdra-jax calibrate``
+prints. The command line and the notebooks call this same function.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ..arm import TWIST_COMPONENTS, Arm
+from ..calibration import NoiseModel, calibrate_lm, calibrate_paper, calibrate_robust
+from ..compilation import cached_filter_jit
+from ..conditioning import conditioning
+from ..identifiability import analyze, generic_rank
+from ..io import (
+    Measurements,
+    calibrated_arm_from_result,
+    check_plausibility,
+    check_pose_count,
+    dumps_result,
+    result_to_dict,
+    save_result,
+)
+from ..plots import calibration_residuals_figure
+from ..uncertainty import analyze_uncertainty
+from .inputs import Data, Model, resolve_arm, resolve_measurements
+
+SOLVERS: tuple[str, ...] = ("paper", "weighted", "lm")
+"""Solver names, the same in every command and function of the package:
+
+* ``paper``: the paper's unweighted iterative least squares (Eqs. 9-14, minimum-norm steps);
+* ``weighted``: the same iteration on the residual whitened by the noise model (needs one);
+* ``lm``: Levenberg-Marquardt (optimistix), whitened when a noise model is given.
+"""
+LOSSES: tuple[str, ...] = ("ls", "huber", "cauchy")
+"""``ls``: plain least squares as in the paper; ``huber``/``cauchy``: robust IRLS around the
+solver."""
+
+FRAME_ERROR_PLAUSIBLE_MM = 50.0
+"""Identified frame errors beyond this translation (norm of the twist's v, mm) ..."""
+FRAME_ERROR_PLAUSIBLE_RAD = 0.5
+"""... or this rotation (norm of w, rad) make :func:`calibrate` warn: a calibration corrects
+small errors of a nominal model, so such a result usually comes from gross errors in the data
+(a typo, swapped rows, wrong units) or too few poses to outvote them."""
+
+
+def default_solver(noise: NoiseModel | None) -> str:
+    """``weighted`` when a noise model is given, else ``paper``."""
+    return "paper" if noise is None else "weighted"
+
+
+def check_solver(solver: str, noise: NoiseModel | None, flag: str = "solver") -> str:
+    """``solver`` unchanged when it is one of :data:`SOLVERS` usable with ``noise``."""
+    if solver not in SOLVERS:
+        raise ValueError(f"{flag} must be one of {', '.join(SOLVERS)}, got {solver!r}")
+    if solver == "weighted" and noise is None:
+        raise ValueError(
+            f"{flag} weighted whitens the residual by the measuring device's noise: give the "
+            "noise model (--noise-pos and --noise-rot)"
+        )
+    return solver
+
+
+def implausible_frame_errors_warning(result: dict) -> str | None:
+    """The warning for identified frame errors beyond :data:`FRAME_ERROR_PLAUSIBLE_MM` or
+    :data:`FRAME_ERROR_PLAUSIBLE_RAD` in a result mapping, or None."""
+    large = []
+    for name, frame in result["frames"].items():
+        t = frame["error_twist"]
+        v = math.sqrt(sum((t[c] or 0.0) ** 2 for c in ("vx", "vy", "vz")))
+        w = math.sqrt(sum((t[c] or 0.0) ** 2 for c in ("wx", "wy", "wz")))
+        if v > FRAME_ERROR_PLAUSIBLE_MM or w > FRAME_ERROR_PLAUSIBLE_RAD:
+            large.append(f"{name} (|v| = {v:.4g} mm, |w| = {w:.3g} rad)")
+    if not large:
+        return None
+    unidentifiable = (result.get("identifiability") or {}).get("unidentifiable") or []
+    return (
+        f"implausibly large identified frame errors: {', '.join(large)}, above "
+        f"{FRAME_ERROR_PLAUSIBLE_MM:g} mm or {FRAME_ERROR_PLAUSIBLE_RAD:g} rad; a calibration "
+        "corrects small errors of the nominal model: check the data for gross errors (typos, "
+        "swapped rows, wrong units) and measure more poses"
+        + (
+            " (part of the error may lie along the unidentifiable directions listed in the "
+            "summary, which the tool poses do not determine)"
+            if unidentifiable
+            else ""
+        )
+    )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CalibrationRun:
+    """One finished calibration and everything reported about it.
+
+    Attributes:
+        arm: the nominal model the solve started from.
+        measurements: the fitted measurements.
+        solution: the solver's :class:`~cdra_jax.calibration.CalibrationSolution` (or
+            :class:`~cdra_jax.calibration.RobustSolution` for a robust loss).
+        result: the result mapping (the result file contract; :meth:`to_dict`).
+        identifiability_summary: the plain-text identifiability (and uncertainty) summary.
+        warnings: every warning, in the order the command line prints them on stderr.
+        model_label: how the model is named in the report (file name or ``embedded CDRA``).
+        data_label: how the measurements are named in the report.
+    """
+
+    arm: Arm
+    measurements: Measurements
+    solution: Any
+    result: dict[str, Any]
+    identifiability_summary: str
+    warnings: tuple[str, ...]
+    model_label: str
+    data_label: str
+
+    @property
+    def converged(self) -> bool:
+        """Whether the solver met its tolerance."""
+        return bool(self.result["converged"])
+
+    @property
+    def calibrated_arm(self) -> Arm:
+        """The calibrated model (Eq. 19: the identified errors applied to the nominal frames)."""
+        return calibrated_arm_from_result(self.result, self.arm)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The result mapping (what :meth:`save` writes as JSON)."""
+        return self.result
+
+    def to_json(self) -> str:
+        """The result file's JSON text."""
+        return dumps_result(self.result)
+
+    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write the result JSON atomically; an existing file is replaced only with ``force``."""
+        return save_result(self.result, path, force=force)
+
+    def report(self) -> str:
+        """The plain-text report ``cdra-jax calibrate`` prints (iterations, Eqs. 20-21, the
+        identified frame errors, identifiability, uncertainty and outliers)."""
+        return _report(
+            self.arm, self.result, self.model_label, self.data_label, self.identifiability_summary
+        )
+
+    def plot(self) -> Figure:
+        """Per-pose residuals of the nominal and calibrated models and the convergence
+        (:func:`cdra_jax.plots.calibration_residuals_figure`)."""
+        return calibration_residuals_figure(self.result)
+
+
+def calibrate(
+    model: Model,
+    data: Data,
+    *,
+    solver: str | None = None,
+    noise: NoiseModel | None = None,
+    loss: Literal["ls", "huber", "cauchy"] = "ls",
+    reject_outliers: bool = False,
+    max_iterations: int | None = None,
+    model_label: str | None = None,
+    data_label: str | None = None,
+) -> CalibrationRun:
+    """Calibrate the fixed frames of a model from measured tool poses (Eqs. 7-21).
+
+    Args:
+        model: an :class:`~cdra_jax.arm.Arm`, a model TOML path, or ``None`` (the embedded
+            7-DOF CDRA of the paper).
+        data: :class:`~cdra_jax.io.Measurements` or a measurement CSV path (module states and
+            measured tool poses in the world frame, mm and rad).
+        solver: one of :data:`SOLVERS`; default ``weighted`` with a noise model, else
+            ``paper``.
+        noise: the measuring device's noise (std per pose: position mm, rotation rad); used to
+            weight the residual (``weighted``, ``lm``), for the parameter uncertainty and the
+            outlier scale.
+        loss: ``ls``, or ``huber``/``cauchy`` for robust IRLS around the solver.
+        reject_outliers: with a robust loss, finish with a least-squares refit without the
+            flagged poses (kept only when it loses no identifiable direction).
+        max_iterations: iteration cap (default 20 for paper/weighted, 50 for lm; per round for
+            a robust loss).
+        model_label, data_label: names for the report (default: file names).
+
+    Raises:
+        ValueError: bad arguments, or data that fail the plausibility checks (the message names
+            the file, row and column); ``OSError`` for unreadable files.
+    """
+    if solver is None:
+        solver = default_solver(noise)
+    check_solver(solver, noise)
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
+    if max_iterations is not None and max_iterations < 1:
+        raise ValueError(f"max_iterations must be at least 1, got {max_iterations}")
+    if reject_outliers and loss == "ls":
+        raise ValueError(
+            "reject_outliers needs a robust loss to flag the outliers: use loss huber or cauchy"
+        )
+    arm, model_label = resolve_arm(model, model_label)
+    meas, data_label, sha = resolve_measurements(data, arm, data_label)
+    check_pose_count(meas)
+    if meas.measured is None:
+        raise ValueError(f"{data_label}: no measured tool poses (measured.* columns) to fit")
+    # Wrong units or conventions stop here with an error naming the column; the rest warns.
+    plausibility = list(check_plausibility(arm, meas))
+    solve_noise = None if solver == "paper" else noise
+    kwargs: dict[str, Any] = {"throw": False}
+    if max_iterations is not None:
+        kwargs["max_iterations"] = max_iterations
+    sol: Any
+    if loss == "ls":
+        fn = calibrate_lm if solver == "lm" else calibrate_paper
+        sol = cached_filter_jit(fn)(arm, meas.q, meas.measured, solve_noise, **kwargs)
+    else:
+        kwargs.update(
+            loss=loss, solver="lm" if solver == "lm" else "paper", reject_outliers=reject_outliers
+        )
+        sol = cached_filter_jit(calibrate_robust)(arm, meas.q, meas.measured, noise, **kwargs)
+    # Unidentifiable directions are reported at the nominal model, where they read simply
+    # (e.g. "0.707 upper_arm.vy - 0.707 forearm.vy" for the CDRA).
+    ident = analyze(arm, meas.q, meas.measured, noise)
+    cond = conditioning(arm, meas.q, meas.measured, noise)
+    # A pose set that identifies less than poses spread over the joint ranges would (repeated
+    # poses, a module that never moves) is degenerate data. Directions that no pose set
+    # identifies (the CDRA's two along the elbow axis) are a property of the model.
+    generic = generic_rank(arm, meas.m, noise)
+    degenerate = []
+    if ident.rank < generic:
+        degenerate.append(
+            f"degenerate pose set: rank {ident.rank} of {ident.n_params} parameters from "
+            f"{ident.n_poses} poses, where as many poses spread over the joint ranges give "
+            f"{generic}; {generic - ident.rank} more combination(s) are lost to the pose set "
+            "(the unidentifiable directions are listed in the summary)"
+        )
+    stored = [
+        *plausibility,
+        *degenerate,
+        *ident.warnings,
+        *([cond.warning] if cond.warning else []),
+    ]
+    inputs = {"model": model_label, "data": data_label}
+    if sha is not None:
+        inputs["data_sha256"] = sha
+    result = result_to_dict(
+        arm,
+        sol,
+        meas.q,
+        meas.measured,
+        noise=noise,
+        identifiability=ident.to_dict(),
+        pose_ids=meas.pose_ids,
+        inputs=inputs,
+        conditioning=cond.to_dict(),
+        warnings=stored,
+    )
+    implausible = implausible_frame_errors_warning(result)
+    if implausible is not None:
+        result["warnings"].append(implausible)
+    # stderr shows each warning once; those of the identifiability analysis only with a
+    # degenerate pose set (otherwise they are part of the summary).
+    shown = [*plausibility, *degenerate]
+    if degenerate:
+        shown += list(ident.warnings)
+    if cond.warning:
+        shown.append(cond.warning)
+    shown += [w for w in result["warnings"] if w not in shown and w not in ident.warnings]
+    summary = ident.summary()
+    if noise is not None:
+        # Covariance of the identified parameters, Cramer-Rao bound and 95 % intervals at the
+        # calibrated model; a robust fit's with its final IRLS weights.
+        base = sol.solution if loss != "ls" else sol
+        unc = analyze_uncertainty(
+            calibrated_arm_from_result(result, arm),
+            meas.q,
+            noise,
+            meas.measured,
+            estimate=np.asarray(base.errors),
+            weights=None if loss == "ls" else np.asarray(sol.weights),
+        )
+        result["uncertainty"] = unc.to_dict()
+        summary = summary + "\n" + unc.summary()
+    return CalibrationRun(
+        arm=arm,
+        measurements=meas,
+        solution=sol,
+        result=result,
+        identifiability_summary=summary,
+        warnings=tuple(shown),
+        model_label=model_label,
+        data_label=data_label,
+    )
+
+
+def _fmt(x: float | None, spec: str = ".4e") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def frame_table(names: Sequence[str], rows, title: str) -> list[str]:
+    """Lines of a table of per-frame twists (``vx ... wz``) under ``title``."""
+    width = max(len(n) for n in names)
+    lines = [title, "  " + " " * width + "".join(f"{c:>13}" for c in TWIST_COMPONENTS)]
+    for name, row in zip(names, rows, strict=True):
+        lines.append("  " + f"{name:<{width}}" + "".join(f"{float(v):>13.6g}" for v in row))
+    return lines
+
+
+_SOLVER_TEXT = {
+    "paper": "paper (the paper's unweighted iterative least squares, Eqs. 9-14)",
+    "weighted": "weighted (the paper's iterative least squares, whitened by the noise model)",
+    "lm": "lm (Levenberg-Marquardt)",
+}
+
+
+def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
+    rob = r.get("robust")
+    out = r.get("outliers") or {}
+    scale = out.get("scale") or {}
+    if rob is None:
+        text = _SOLVER_TEXT[r["solver"]]
+        if r["solver"] == "lm" and r["noise"] is not None:
+            text += ", weighted"
+    else:
+        inner = _SOLVER_TEXT[rob["inner_solver"]].split(" (")[0]
+        text = (
+            f"{rob['loss']} (robust, c = {rob['tuning_constant']:g}) by iteratively reweighted "
+            f"least squares around {inner}; "
+            f"{rob['rounds']} reweighting round{'s' if rob['rounds'] != 1 else ''}"
+        )
+        if rob.get("refit_without_flagged"):
+            n_out = len(out.get("poses") or [])
+            text += (
+                f"; then least squares without the {n_out} flagged pose(s) (--reject-outliers)"
+                if n_out
+                else "; then least squares on all poses (none flagged, --reject-outliers)"
+            )
+        elif rob.get("reject_outliers"):
+            text += (
+                "; the refit without the flagged poses was not kept (fewer than 4 poses left, "
+                "an identifiable direction lost, or not converged)"
+            )
+    lines = [
+        f"model: {arm.name} ({model_label}); data: {data} ({r['n_poses']} poses)",
+        f"solver: {text}",
+    ]
+    if r["noise"] is not None:
+        n = r["noise"]
+        lines.append(f"noise model: {n['position_mm']:g} mm, {n['rotation_rad']:g} rad")
+    lines.append(f"  {'iter':>4}  {'step norm':>11}  {'dp [mm]':>11}  {'dR [rad]':>11}")
+    init = r["initial"]
+    lines.append(
+        f"  {0:>4}  {'-':>11}  {_fmt(init['delta_p_mm']):>11}  {_fmt(init['delta_R_rad']):>11}"
+    )
+    for it in r["iterations"]:
+        lines.append(
+            f"  {it['iteration']:>4}  {_fmt(it['step_norm']):>11}  "
+            f"{_fmt(it['delta_p_mm']):>11}  {_fmt(it['delta_R_rad']):>11}"
+        )
+    k = len(r["iterations"])
+    status = "converged" if r["converged"] else f"NOT converged ({r['result']})"
+    lines.append(
+        f"{status} after {k} iteration{'s' if k != 1 else ''}: dp = "
+        f"{_fmt(r['final']['delta_p_mm'], '.3g')} mm, dR = "
+        f"{_fmt(r['final']['delta_R_rad'], '.3g')} rad (Eqs. 20-21, fitted poses)"
+    )
+    names = list(r["frames"])
+    nan = float("nan")
+    twists = [r["frames"][n]["error_twist"] for n in names]
+    rows = [[nan if t[c] is None else t[c] for c in TWIST_COMPONENTS] for t in twists]
+    lines += frame_table(
+        names, rows, "identified frame errors dt = log(T^c T^-1) (Eqs. 15-18; v mm, w rad):"
+    )
+    lines.append(ident)
+    if scale:
+        flagged = [x for x in r["residuals"] if x.get("outlier")]
+        sp, sr = _fmt(scale["position_mm"], ".3g"), _fmt(scale["rotation_rad"], ".3g")
+        lines.append(
+            f"outliers (z > {out['threshold']:.3g}; residual scale {sp} mm, {sr} rad from the "
+            f"{scale['source']}): " + (str(len(flagged)) if flagged else "none")
+        )
+        for x in sorted(flagged, key=lambda x: -(x["z"] or 0.0)):
+            lines.append(
+                f"  {x['pose']}: z = {_fmt(x['z'], '.3g')}, weight {_fmt(x['weight'], '.2g')}, "
+                f"calibrated residual {_fmt(x['calibrated_position_mm'], '.3g')} mm, "
+                f"{_fmt(x['calibrated_rotation_rad'], '.3g')} rad"
+            )
+    return "\n".join(lines)

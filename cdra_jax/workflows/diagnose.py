@@ -1,0 +1,107 @@
+"""The diagnose workflow: why does a calibrated model still disagree with the recordings?
+
+:func:`diagnose` loads the model and the measurements (objects or files) and runs the
+missing-physics analyser of :mod:`cdra_jax.diagnosis` (detect a mismatch, locate it, attribute
+it to an effect of the vocabulary of :mod:`cdra_jax.physics`, refit, and measure the held-out
+gain). The returned :class:`DiagnosisRun` is what ``cdra-jax diagnose`` prints and writes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from matplotlib.figure import Figure
+
+from ..arm import Arm
+from ..calibration import NoiseModel
+from ..diagnosis import Diagnosis
+from ..diagnosis import diagnose as _diagnose
+from ..io import Measurements
+from ..io.files import json_text, write_text_atomic
+from ..plots import residual_vs_regressors_figure, save_diagnosis_plots
+from .inputs import Data, Model, check_at_least, check_seed, resolve_arm, resolve_measurements
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DiagnosisRun:
+    """A diagnosis with the model and measurements it was made on.
+
+    Attributes:
+        arm: the nominal model.
+        measurements: the recordings.
+        diagnosis: the analyser's :class:`~cdra_jax.diagnosis.Diagnosis` (verdict, location,
+            effect, parameters, candidate table, held-out errors before and after).
+        model_label: the model file (or ``embedded CDRA``).
+        data_label: the measurement file.
+    """
+
+    arm: Arm
+    measurements: Measurements
+    diagnosis: Diagnosis
+    model_label: str
+    data_label: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """The diagnosis mapping with the model and data labels (the diagnosis JSON)."""
+        out = self.diagnosis.to_dict()
+        out["model"] = self.model_label
+        out["data"] = self.data_label
+        return out
+
+    def to_json(self) -> str:
+        """The diagnosis JSON text."""
+        return json_text(self.to_dict())
+
+    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write the diagnosis JSON atomically (an existing file only with ``force``)."""
+        return write_text_atomic(path, self.to_json(), force=force)
+
+    def report(self) -> str:
+        """The plain-words verdict and the candidate table (what ``cdra-jax diagnose`` prints)."""
+        return f"{self.diagnosis.report}\n\n{self.diagnosis.table()}"
+
+    def plot(self) -> Figure:
+        """Held-out residuals against every regressor, before and after the refit."""
+        return residual_vs_regressors_figure(self.arm, self.measurements, self.diagnosis)
+
+    def save_plots(self, folder: str | os.PathLike, *, force: bool = False) -> Sequence[Path]:
+        """Write the diagnosis figures (PNG) into ``folder``; returns the paths."""
+        return save_diagnosis_plots(
+            self.arm, self.measurements, self.diagnosis, folder, force=force
+        )
+
+
+def diagnose(
+    model: Model,
+    data: Data,
+    noise: NoiseModel | None = None,
+    *,
+    seed: int = 0,
+    folds: int = 5,
+    alpha: float = 0.01,
+    model_label: str | None = None,
+    data_label: str | None = None,
+) -> DiagnosisRun:
+    """Find the missing physics a geometric calibration leaves in the recordings.
+
+    Args:
+        model: an :class:`~cdra_jax.arm.Arm`, a model TOML path, or ``None`` (embedded CDRA).
+        data: :class:`~cdra_jax.io.Measurements` or a measurement CSV path.
+        noise: the measuring device's noise, or ``None`` (estimated from the residuals).
+        seed: seed of the cross-validation folds.
+        folds: number of cross-validation folds (>= 2).
+        alpha: significance level of the detection and the candidate tests (0 < alpha < 1).
+        model_label, data_label: names for the report.
+    """
+    check_seed(seed)
+    check_at_least("folds", folds, 2)
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    arm, model_label = resolve_arm(model, model_label)
+    meas, data_label, _ = resolve_measurements(data, arm, data_label)
+    d = _diagnose(arm, meas, noise, seed=seed, folds=folds, alpha=alpha)
+    return DiagnosisRun(arm, meas, d, model_label, data_label)

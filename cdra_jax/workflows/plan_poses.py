@@ -1,0 +1,221 @@
+"""The plan-poses workflow: which poses to measure (optimal selection from a pool).
+
+:func:`plan_poses` draws a pool of feasible module states (:func:`cdra_jax.simulation.
+sample_poses`: uniform within the joint limits, tension-feasible where the model has cables),
+selects ``count`` of them by a design criterion (:mod:`cdra_jax.pose_selection`; I-optimal by
+default) and predicts the accuracy of a calibration from them against that of as many random
+poses. The :class:`PosePlan` writes a measurement-plan CSV in the measurement-file column naming
+(``pose`` and the module state columns; no ``measured.*`` columns: it is a plan to be measured).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+from matplotlib.figure import Figure
+
+from ..arm import Arm
+from ..calibration import NoiseModel
+from ..io.files import json_text, write_text_atomic
+from ..plots import new_figure
+from ..pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE, select_poses
+from ..uncertainty import predicted_pose_covariance
+from .inputs import Model, check_seed, resolve_arm
+
+DEFAULT_NOISE = NoiseModel(position_mm=0.08, rotation_rad=1e-3)
+"""The measuring device assumed when none is given: the paper's FARO arm (Section VI, 80 um),
+orientation from calibration-block points about 80 mm apart (1e-3 rad)."""
+RANDOM_DRAWS = 20
+"""Random pose sets of the same size whose median accuracy the plan is compared with."""
+
+
+def plan_csv_text(state_names: Sequence[str], states, comments: Sequence[str] = ()) -> str:
+    """The plan CSV: ``#`` comment lines, a header ``pose,<state names>``, one row per pose.
+
+    Pose ids are ``P01``, ``P02``, ... (zero-padded to the count); floats are written with
+    ``repr`` (round trip exact).
+    """
+    buf = io.StringIO()
+    for c in comments:
+        buf.write(f"# {c}\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["pose", *state_names])
+    width = max(2, len(str(len(states))))
+    for i, row in enumerate(states, start=1):
+        w.writerow([f"P{i:0{width}d}", *(repr(float(v)) for v in row)])
+    return buf.getvalue()
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PosePlan:
+    """A measurement plan and its expected accuracy.
+
+    Attributes:
+        arm: the model.
+        states: ``(count, dof)`` the selected module states.
+        selection: the :class:`~cdra_jax.pose_selection.PoseSelection` (pool, criterion values).
+        expected_dp_mm: expected RMS tool-position accuracy after calibrating from the plan.
+        expected_dR_rad: likewise for the orientation.
+        random_dp_mm: ``(RANDOM_DRAWS,)`` the same for random pose sets of the same size.
+        criterion, pool, seed, noise, model_label: how the plan was made.
+    """
+
+    arm: Arm
+    states: np.ndarray
+    selection: Any
+    expected_dp_mm: float
+    expected_dR_rad: float
+    random_dp_mm: np.ndarray
+    criterion: str
+    pool: int
+    seed: int
+    noise: NoiseModel
+    model_label: str
+
+    def comments(self) -> list[str]:
+        """The ``#`` lines of the plan CSV (how it was made, what to measure)."""
+        sel = self.selection
+        return [
+            f"measurement plan: {len(self.states)} poses chosen by cdra-jax plan-poses "
+            f"({self.criterion})",
+            f"model: {self.model_label}; pool: {self.pool} states, seed {self.seed}",
+            f"noise: {float(self.noise.position_mm)} mm, {float(self.noise.rotation_rad)} rad",
+            f"log det information (identifiable subspace, rank {sel.rank}): {sel.log_det:.6g}; "
+            f"O1: {sel.o1:.6g}",
+            f"expected RMS accuracy after calibration: dp {self.expected_dp_mm:.4g} mm, "
+            f"dR {self.expected_dR_rad:.4g} rad",
+            "measure the tool pose at each row and add measured.x/y/z and measured.rx/ry/rz "
+            "columns",
+        ]
+
+    def to_csv_text(self) -> str:
+        """The plan CSV text."""
+        return plan_csv_text(self.arm.state_names, self.states, self.comments())
+
+    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write the plan CSV atomically (an existing file only with ``force``)."""
+        return write_text_atomic(path, self.to_csv_text(), force=force)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The plan's numbers: criterion values and expected accuracies."""
+        sel = self.selection
+        return {
+            "count": len(self.states),
+            "criterion": self.criterion,
+            "pool": self.pool,
+            "seed": self.seed,
+            "noise": {
+                "position_mm": float(self.noise.position_mm),
+                "rotation_rad": float(self.noise.rotation_rad),
+            },
+            "rank": int(sel.rank),
+            "log_det": float(sel.log_det),
+            "o1": float(sel.o1),
+            "expected_dp_mm": self.expected_dp_mm,
+            "expected_dR_rad": self.expected_dR_rad,
+            "random_dp_mm_median": float(np.median(self.random_dp_mm)),
+            "states": {n: self.states[:, j].tolist() for j, n in enumerate(self.arm.state_names)},
+        }
+
+    def to_json(self) -> str:
+        """:meth:`to_dict` as JSON text."""
+        return json_text(self.to_dict())
+
+    def report(self) -> str:
+        """The summary ``cdra-jax plan-poses`` prints."""
+        sel = self.selection
+        n = len(self.states)
+        return "\n".join(
+            [
+                f"selected {n} of {self.pool} poses by {self.criterion}: log det "
+                f"{sel.log_det:.6g} (greedy {sel.log_det_greedy:.6g}, {sel.n_exchanges} "
+                f"exchanges), rank {sel.rank}, O1 {sel.o1:.4g}",
+                f"expected RMS accuracy over the workspace with noise "
+                f"{float(self.noise.position_mm)} mm / {float(self.noise.rotation_rad)} rad:",
+                f"  planned poses: dp {self.expected_dp_mm:.4g} mm, dR {self.expected_dR_rad:.4g} "
+                "rad",
+                f"  {n} random poses (median of {len(self.random_dp_mm)} draws): dp "
+                f"{np.median(self.random_dp_mm):.4g} mm",
+            ]
+        )
+
+    def plot(self) -> Figure:
+        """Expected RMS position accuracy of the plan against that of random pose sets."""
+        fig = new_figure(6.0, 3.6)
+        ax = fig.add_subplot()
+        ax.hist(self.random_dp_mm, bins=10, color="0.7", label=f"{len(self.states)} random poses")
+        ax.axvline(self.expected_dp_mm, color="C3", lw=2, label=f"plan ({self.criterion})")
+        ax.set_xlabel("expected RMS tool-position accuracy after calibration [mm]")
+        ax.set_ylabel("random pose sets")
+        ax.legend(fontsize="small")
+        return fig
+
+
+def plan_poses(
+    model: Model,
+    count: int,
+    *,
+    noise: NoiseModel | None = None,
+    pool: int = DEFAULT_POOL_SIZE,
+    seed: int = 0,
+    criterion: str = DEFAULT_CRITERION,
+    model_label: str | None = None,
+) -> PosePlan:
+    """Choose ``count`` poses to measure from a pool of ``pool`` random feasible states.
+
+    Args:
+        model: an :class:`~cdra_jax.arm.Arm`, a model TOML path, or ``None`` (embedded CDRA).
+        count: poses to select (>= 4, the paper's minimum).
+        noise: the measuring device's noise (default :data:`DEFAULT_NOISE`).
+        pool: candidate states (>= ``count``); also the workspace sample over which the
+            I-criterion averages the predicted tool-position variance.
+        seed: seed of the pool (and of the random comparison sets).
+        criterion: one of :data:`cdra_jax.pose_selection.CRITERIA` (``i-opt`` default).
+        model_label: name of the model in the plan's comments.
+    """
+    if count < 4:
+        raise ValueError(f"count must be at least 4 (the paper's minimum), got {count}")
+    if pool < count:
+        raise ValueError(f"pool ({pool}) must be at least count ({count})")
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
+    check_seed(seed)
+    noise = DEFAULT_NOISE if noise is None else noise
+    arm, model_label = resolve_arm(model, model_label)
+    sel = select_poses(
+        arm, count, noise, key=jax.random.PRNGKey(seed), pool_size=pool, criterion=criterion
+    )
+    # Expected accuracy over the pool (a sample of the workspace), selected vs random poses.
+    exp_sel = predicted_pose_covariance(arm, sel.states, noise, sel.pool)
+    rng = np.random.default_rng(seed % 2**64)  # numpy takes no negative seeds
+    rand = np.array(
+        [
+            float(
+                predicted_pose_covariance(
+                    arm, sel.pool[rng.choice(len(sel.pool), count, replace=False)], noise, sel.pool
+                ).expected_delta_p
+            )
+            for _ in range(RANDOM_DRAWS)
+        ]
+    )
+    return PosePlan(
+        arm=arm,
+        states=np.asarray(sel.states),
+        selection=sel,
+        expected_dp_mm=float(exp_sel.expected_delta_p),
+        expected_dR_rad=float(exp_sel.expected_delta_R),
+        random_dp_mm=rand,
+        criterion=criterion,
+        pool=pool,
+        seed=seed,
+        noise=noise,
+        model_label=model_label,
+    )
