@@ -21,13 +21,13 @@ from ..calibration import NoiseModel
 from ..diagnosis import Diagnosis
 from ..diagnosis import diagnose as _diagnose
 from ..io import Measurements
-from ..io.files import json_text, write_text_atomic
 from ..plots import residual_vs_regressors_figure, save_diagnosis_plots
 from .inputs import Data, Model, check_at_least, check_seed, resolve_arm, resolve_measurements
+from .result import JsonResult
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class DiagnosisRun:
+class DiagnosisRun(JsonResult):
     """A diagnosis with the model and measurements it was made on.
 
     Attributes:
@@ -51,14 +51,6 @@ class DiagnosisRun:
         out["model"] = self.model_label
         out["data"] = self.data_label
         return out
-
-    def to_json(self) -> str:
-        """The diagnosis JSON text."""
-        return json_text(self.to_dict())
-
-    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
-        """Write the diagnosis JSON atomically (an existing file only with ``force``)."""
-        return write_text_atomic(path, self.to_json(), force=force)
 
     def report(self) -> str:
         """The plain-words verdict and the candidate table (what ``cdra-jax diagnose`` prints)."""

@@ -24,11 +24,12 @@ from matplotlib.figure import Figure
 
 from ..arm import Arm
 from ..calibration import NoiseModel
-from ..io.files import json_text, write_text_atomic
+from ..io.files import write_text_atomic
 from ..plots import new_figure
 from ..pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE, select_poses
 from ..uncertainty import predicted_pose_covariance
 from .inputs import Model, check_seed, resolve_arm
+from .result import JsonResult
 
 DEFAULT_NOISE = NoiseModel(position_mm=0.08, rotation_rad=1e-3)
 """The measuring device assumed when none is given: the paper's FARO arm (Section VI, 80 um),
@@ -55,7 +56,7 @@ def plan_csv_text(state_names: Sequence[str], states, comments: Sequence[str] = 
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class PosePlan:
+class PosePlan(JsonResult):
     """A measurement plan and its expected accuracy.
 
     Attributes:
@@ -124,10 +125,6 @@ class PosePlan:
             "random_dp_mm_median": float(np.median(self.random_dp_mm)),
             "states": {n: self.states[:, j].tolist() for j, n in enumerate(self.arm.state_names)},
         }
-
-    def to_json(self) -> str:
-        """:meth:`to_dict` as JSON text."""
-        return json_text(self.to_dict())
 
     def report(self) -> str:
         """The summary ``cdra-jax plan-poses`` prints."""

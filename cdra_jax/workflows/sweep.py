@@ -17,14 +17,14 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
-from ..io.files import json_text
 from ..plots import plot_sweep_figure
 from ..sweeps import SweepTable, parse_noise_levels, run_sweep
 from .inputs import Model, check_at_least, check_non_negative, check_seed, resolve_arm
+from .result import JsonResult
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class SweepRun:
+class SweepRun(JsonResult):
     """A finished sweep.
 
     Attributes:
@@ -56,10 +56,6 @@ class SweepRun:
     def to_dict(self) -> dict[str, Any]:
         """The sweep's settings (``meta``) and the median table (:meth:`summary_rows`)."""
         return {"meta": dict(self.table.meta), "summary": self.summary_rows()}
-
-    def to_json(self) -> str:
-        """:meth:`to_dict` as JSON text (the per-trial table is written by :meth:`save`)."""
-        return json_text(self.to_dict())
 
     def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
         """Write the per-trial table (``.csv``, or ``.parquet`` where pyarrow is installed)."""

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,9 +23,9 @@ from ..arm import Arm, tool_pose
 from ..calibration import pose_errors
 from ..compilation import cached_filter_jit
 from ..io import Measurements, calibrated_arm_from_result, load_result
-from ..io.files import json_text, write_text_atomic
 from ..plots import validation_figure
 from .inputs import Data, Model, resolve_arm, resolve_measurements
+from .result import JsonResult
 
 
 def _errors(arm: Arm, q, measured) -> tuple[np.ndarray, np.ndarray]:
@@ -53,7 +52,7 @@ def pooled(errors: np.ndarray) -> dict[str, float | int]:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class ValidationRun:
+class ValidationRun(JsonResult):
     """Prediction errors of a model on measured poses.
 
     Attributes:
@@ -114,14 +113,6 @@ class ValidationRun:
             }
         out["rows"] = rows
         return out
-
-    def to_json(self) -> str:
-        """The validation as JSON text."""
-        return json_text(self.to_dict())
-
-    def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
-        """Write the validation JSON atomically (an existing file only with ``force``)."""
-        return write_text_atomic(path, self.to_json(), force=force)
 
     def report(self) -> str:
         """The plain-text summary ``cdra-jax validate`` prints."""
