@@ -361,7 +361,15 @@ def apply_frame_errors(arm: Arm, errors: ArrayLike) -> Arm:
 
 def frame_errors(calibrated: Arm, nominal: Arm) -> Array:
     """Error twists of the calibrated frames w.r.t. the nominal ones (Eqs. 15-18): ``(K+1, 6)``."""
-    return lie.se3_log(calibrated.frames @ lie.inverse(nominal.frames))
+    return error_twists(calibrated.frames, nominal.frames)
+
+
+def error_twists(frames: ArrayLike, reference: ArrayLike) -> Array:
+    """The identified error of each frame, ``dt_j = log(F_j F_j,ref^-1)^v`` (Eqs. 15-18): the
+    left-multiplied twist that moves the reference frame onto the frame (``F = exp(dt^) F_ref``,
+    Eqs. 11-14). ``(..., K+1, 4, 4)`` twice -> ``(..., K+1, 6)``, ``(v [mm], w [rad])``; the one
+    implementation of this formula in the package."""
+    return lie.se3_log(jnp.asarray(frames) @ lie.inverse(jnp.asarray(reference)))
 
 
 def sample_states(key: Array, arm: Arm, m: int, dtype=None) -> Array:

@@ -50,7 +50,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from . import lie, simulation
-from .arm import Arm, apply_frame_errors, tool_pose
+from .arm import Arm, apply_frame_errors, error_twists, tool_pose
 from .calibration import (
     NoiseModel,
     calibrate_paper,
@@ -184,7 +184,7 @@ def _identifiable_projector(actual: Arm, q: ArrayLike, measured: ArrayLike) -> j
 
 def _group_difference(frames, reference_frames):
     """``log(F_j (F_j^ref)^-1)^v`` per frame, flattened: ``(..., K+1, 4, 4) -> (..., 6 (K+1))``."""
-    d = lie.se3_log(frames @ lie.inverse(reference_frames))
+    d = error_twists(frames, reference_frames)
     return d.reshape(d.shape[:-2] + (-1,))
 
 

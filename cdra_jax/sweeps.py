@@ -60,8 +60,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import lie
-from .arm import Arm, apply_frame_errors, chain, module_poses, tool_pose
+from .arm import Arm, apply_frame_errors, chain, error_twists, module_poses, tool_pose
 from .calibration import (
     RESULTS,
     NoiseModel,
@@ -381,7 +380,7 @@ def _typed_block(path, first_line: int, rows: list[list[str]], idx: dict[str, in
 
 def _identifiable_error(arm_true: Arm, q: jax.Array, frames: jax.Array) -> tuple:
     """Identified-minus-true frame errors projected on the identifiable subspace at the truth."""
-    e = lie.se3_log(frames @ lie.inverse(arm_true.frames))  # (K+1, 6)
+    e = error_twists(frames, arm_true.frames)  # (K+1, 6)
     _, after = chain(arm_true.frames, module_poses(arm_true, q))
     D = calibration_jacobian(after)
     D = D.reshape(-1, D.shape[-1])

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .. import lie
+from ..arm import error_twists
 from . import kernels
 from .model import NoiseModel
 
@@ -121,10 +122,7 @@ def _attach_jvp(kind, primals, tangents):
     dcost_d = dcost_dd @ dd
     dframes = lie.hat(dd.reshape(-1, 6)) @ frames
 
-    def errors_of(frames, frames0):
-        return lie.se3_log(frames @ lie.inverse(frames0))
-
-    _, derrors = jax.jvp(errors_of, (frames, frames0), (dframes, dframes0))
+    _, derrors = jax.jvp(error_twists, (frames, frames0), (dframes, dframes0))
     return (frames, errors, cost), (dframes, derrors, dcost_data + dcost_d)
 
 

@@ -82,7 +82,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from .. import lie
-from ..arm import Arm, chain, module_poses
+from ..arm import Arm, chain, error_twists, module_poses
 from . import implicit
 from .batching import batched_like
 from .gauss_newton import calibrate_paper
@@ -435,7 +435,7 @@ def calibrate_robust(
         return _z(e, scale), scale
 
     def change(new: Array, old: Array) -> Array:
-        return jnp.linalg.norm(lie.se3_log(new @ lie.inverse(old)))
+        return jnp.linalg.norm(error_twists(new, old))
 
     n = arm.n_params
     dp_nom, dR_nom = deviation_metrics(measured, chain(nominal, poses)[0])

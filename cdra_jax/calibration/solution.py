@@ -11,8 +11,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import lie
-from ..arm import Arm, module_poses
+from ..arm import Arm, error_twists, module_poses
 from . import implicit
 from .model import NoiseModel
 from .validation import check_noise, check_problem
@@ -182,7 +181,7 @@ def _assemble_solution(
     n = 6 * nominal.shape[-3]
     return CalibrationSolution(
         frames=frames,
-        errors=lie.se3_log(frames @ lie.inverse(nominal)),
+        errors=error_twists(frames, nominal),
         result=result,
         iterations=iterations,
         step_norm=step_norm,
