@@ -27,8 +27,8 @@ from . import workflows as workflows
 from .arm import Arm as Arm
 from .arm import Module as Module
 from .arm import apply_frame_errors as apply_frame_errors
-from .arm import forward_kinematics as forward_kinematics
 from .arm import error_twists as error_twists
+from .arm import forward_kinematics as forward_kinematics
 from .arm import frame_errors as frame_errors
 from .arm import tool_pose as tool_pose
 from .calibration import RESULTS as RESULTS
