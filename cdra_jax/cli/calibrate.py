@@ -11,6 +11,7 @@ import argparse
 import sys
 
 from ..io.files import check_distinct_files, check_output
+from ..workflows.inputs import check_range
 from . import common
 
 SOLVER_HELP = (
@@ -67,8 +68,8 @@ def register(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run ``calibrate``; returns the exit code."""
     noise = common.noise(args)
-    if args.max_iterations is not None and args.max_iterations < 1:
-        raise ValueError(f"--max-iterations must be at least 1, got {args.max_iterations}")
+    if args.max_iterations is not None:
+        check_range("--max-iterations", args.max_iterations)
     if args.reject_outliers and args.loss == "ls":
         raise ValueError(
             "--reject-outliers needs a robust loss to flag the outliers: add --loss huber or "

@@ -2,7 +2,8 @@
 
 Exit codes (:mod:`.common`): 0 success; 1 bad input or a file problem (one line ``error: ...`` on
 stderr, no traceback); 2 wrong usage (argparse); 3 a calibration that did not converge (the
-result file is still written, with ``"converged": false``). Warnings (implausible data, a
+result file is still written, with ``"converged": false``); 130 interrupted (``SIGINT``) and 143
+terminated (``SIGTERM``), with no partial output file left behind. Warnings (implausible data, a
 degenerate or poorly conditioned pose set, outliers) do not change the exit code: each is one
 ``warning: ...`` line on stderr and an entry of ``warnings`` in the result file.
 
@@ -58,9 +59,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     Enables ``jax_enable_x64`` before running any subcommand and turns ``ValueError``,
     ``OSError`` and a failed run-time check inside compiled code into one ``error: ...`` line.
     """
+    import threading
+
     import jax
 
+    from ..io.files import remove_temporary_files_on_sigterm
+
     jax.config.update("jax_enable_x64", True)
+    if threading.current_thread() is threading.main_thread():
+        remove_temporary_files_on_sigterm()  # SIGTERM: temporary files removed, exit 143
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -68,6 +75,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(e.code or 0) if not isinstance(e.code, str) else common.EXIT_USAGE
     try:
         return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # SIGINT: what was being written is removed
+        print("error: interrupted; no partial output file was left", file=sys.stderr)
+        return common.EXIT_INTERRUPTED
     except Exception as e:  # user errors (common.user_error_line) only; the rest raises
         line = common.user_error_line(e)
         if line is None:

@@ -15,6 +15,8 @@ import sys
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOT_CONVERGED = 0, 1, 2, 3
 """Exit codes: success; bad input or a file problem (one ``error: ...`` line on stderr); wrong
 usage (argparse); a calibration that did not converge (its result file is still written)."""
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
+"""Interrupted by ``SIGINT`` (Ctrl-C) or terminated by ``SIGTERM``; no partial file is left."""
 
 
 def add_model_option(p: argparse.ArgumentParser) -> None:

@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from ..io.files import check_distinct_files, check_output
+from ..workflows.inputs import check_range
 from . import common
 
 
@@ -43,6 +44,9 @@ def register(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run ``diagnose``; exit code 0 (also when a mismatch is found)."""
     noise = common.noise(args)
+    check_range("--folds", args.folds)
+    if not 0 < args.alpha < 1:
+        raise ValueError(f"--alpha must be a number in (0, 1), got {args.alpha}")
     check_distinct_files([("--out", args.out)], [("--data", args.data), ("--model", args.model)])
     check_output(args.out, args.force, "--out")
     if args.plots is not None and Path(args.plots).exists() and not Path(args.plots).is_dir():

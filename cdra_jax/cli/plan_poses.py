@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..io.files import check_distinct_files, check_output
 from ..pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE
+from ..workflows.inputs import check_range
 from ..workflows.plan_poses import DEFAULT_NOISE
 from . import common
 
@@ -71,8 +72,8 @@ def register(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run ``plan-poses``; returns the exit code (0)."""
     noise = common.noise(args)
-    if args.count < 4:
-        raise ValueError(f"--count must be at least 4 (the paper's minimum), got {args.count}")
+    check_range("--count", args.count)  # at least 4: the paper's minimum
+    check_range("--pool", args.pool)
     if args.pool < args.count:
         raise ValueError(f"--pool ({args.pool}) must be at least --count ({args.count})")
     out = Path(args.out)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 
 from ..io.files import check_distinct_files, check_output
+from ..workflows.inputs import check_range
 from . import common
 
 
@@ -68,15 +69,14 @@ def register(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run ``simulate``; returns the exit code (0)."""
     noise = common.noise(args)
-    if args.poses < 1:
-        raise ValueError(f"--poses must be at least 1, got {args.poses}")
+    check_range("--poses", args.poses)
     if args.errors != "random" and (args.d_v is not None or args.d_w is not None):
         raise ValueError("--d-v/--d-w set the range of random errors; they need --errors random")
     if args.cable_noise is not None and not args.cables:
         raise ValueError("--cable-noise needs --cables (noise on the written cable lengths)")
     for flag, v in (("--d-v", args.d_v), ("--d-w", args.d_w), ("--cable-noise", args.cable_noise)):
-        if v is not None and not 0 <= v < float("inf"):
-            raise ValueError(f"{flag} must be a non-negative number, got {v}")
+        if v is not None:
+            check_range(flag, v)
     errors_file = None if args.errors in ("random", "zero") else args.errors
     check_distinct_files(
         [("--out", args.out), ("--truth", args.truth)],

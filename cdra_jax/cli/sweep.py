@@ -19,6 +19,7 @@ import argparse
 from pathlib import Path
 
 from ..io.files import check_distinct_files, check_output
+from ..workflows.inputs import check_range
 from . import common
 
 
@@ -118,13 +119,11 @@ def run(args: argparse.Namespace) -> int:
     """Run ``sweep``; returns the exit code (0)."""
     # Every check of the arguments and the output files before any work.
     for flag, n in (("--trials", args.trials), ("--verify", args.verify), ("--chunk", args.chunk)):
-        if n < 1:
-            raise ValueError(f"{flag} must be >= 1, got {n}")
-    if args.cpu_devices is not None and args.cpu_devices < 1:
-        raise ValueError(f"--cpu-devices must be >= 1, got {args.cpu_devices}")
+        check_range(flag, n)
+    if args.cpu_devices is not None:
+        check_range("--cpu-devices", args.cpu_devices)
     for flag, v in (("--d-v", args.d_v), ("--d-w", args.d_w)):
-        if not 0 <= v < float("inf"):
-            raise ValueError(f"{flag} must be a non-negative number, got {v}")
+        check_range(flag, v)
     out = Path(args.out)
     if out.suffix.lower() not in (".csv", ".parquet"):
         raise ValueError(f"{out}: --out must end in .csv or .parquet")

@@ -8,6 +8,13 @@ temporary file in the destination folder, flushed and ``fsync``-ed, then moved i
 step, so a reader (or a crash) never sees half a file. Without ``force`` an existing destination
 is never replaced; the check and the move are one atomic step where the file system supports
 hard links (``os.link`` fails when the name exists), so two writers cannot both "win".
+
+What is never replaced, with or without ``force``: anything that is not a regular file (a folder,
+a FIFO, a device node such as ``/dev/null``, a socket). A symbolic link is written through: the
+file it points to is replaced (atomically, in the target's folder) and the link stays a link.
+The temporary file is removed when the write fails or the process is interrupted (``SIGINT``, and
+``SIGTERM`` once :func:`remove_temporary_files_on_sigterm` is installed, as the command line
+does).
 """
 
 from __future__ import annotations
@@ -15,6 +22,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
+import stat
 import tempfile
 import uuid
 from collections.abc import Callable, Iterable
@@ -49,17 +58,11 @@ def write_file_atomic(
 
     Raises:
         OutputExistsError: ``path`` exists and ``force`` is false.
-        OSError: the folder does not exist or is not writable, or ``path`` is a folder (the
-            message names the path).
+        OSError: the folder does not exist or is not writable, or ``path`` is not a regular
+            file (a folder, FIFO, device or socket; the message names the path and what it is).
     """
-    path = Path(path)
-    if path.is_dir():
-        raise IsADirectoryError(f"{path}: is a folder, expected a file name")
-    if not force and path.exists():
-        raise OutputExistsError(_exists_message(path))
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{path}: folder {folder} does not exist")
+    path = destination(path, force)
+    folder = path.parent
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     try:
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600; give it a normal file's mode
@@ -81,6 +84,59 @@ def write_file_atomic(
             os.unlink(tmp)
         raise
     return path
+
+
+_KINDS = (
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def destination(path: str | os.PathLike, force: bool, flag: str | None = None) -> Path:
+    """The file an output ``path`` really writes: ``path`` itself, or the target of a symbolic
+    link (written through). Raises before any work when the destination exists and is not a
+    regular file (whatever ``force`` says), exists without ``force``, or its folder is missing.
+
+    ``flag`` (e.g. ``"--out"``) prefixes messages."""
+    where = f"{flag} {path}" if flag else f"{path}"
+    p = Path(path)
+    if p.is_symlink():
+        p = Path(os.path.realpath(p))
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        mode = None
+    if mode is not None:
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(f"{where}: is a folder, expected a file name")
+        for test, kind in _KINDS:
+            if test(mode):
+                raise OutputNotRegularError(
+                    f"{where}: is {kind}, not a regular file; refusing to replace it"
+                )
+        if not force:
+            raise OutputExistsError(_exists_message(Path(path)))
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{where}: folder {folder} does not exist")
+    return p
+
+
+class OutputNotRegularError(OSError):
+    """The output exists and is not a regular file (FIFO, device, socket): never replaced."""
+
+
+def remove_temporary_files_on_sigterm() -> None:
+    """Turn ``SIGTERM`` into ``SystemExit(143)`` so that a write in progress removes its
+    temporary file (as ``SIGINT``'s ``KeyboardInterrupt`` does). Only from the main thread;
+    the command line installs it."""
+
+    def _terminate(signum, frame):  # noqa: ARG001
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, _terminate)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str, *, force: bool = False) -> Path:
@@ -171,17 +227,11 @@ def _is_number(v: Any) -> bool:
 
 
 def check_output(path: str | os.PathLike | None, force: bool, flag: str) -> None:
-    """Fail before any work when an output file exists (no ``--force``), is a folder, or its
-    folder is missing (outputs never create folders)."""
-    if path is None:
-        return
-    p = Path(path)
-    if p.is_dir():
-        raise IsADirectoryError(f"{flag} {p}: is a folder, expected a file name")
-    if p.exists() and not force:
-        raise FileExistsError(f"{p}: file exists; refusing to overwrite it (pass --force)")
-    if not (p.parent if str(p.parent) else Path(".")).is_dir():
-        raise FileNotFoundError(f"{flag} {p}: folder {p.parent} does not exist")
+    """Fail before any work when an output cannot be written: it exists (no ``--force``), is not
+    a regular file (a folder, FIFO, device or socket: never replaced), or its folder is missing
+    (outputs never create folders). See :func:`destination`."""
+    if path is not None:
+        destination(path, force, flag)
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:

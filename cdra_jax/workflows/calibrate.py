@@ -39,7 +39,7 @@ from ..io import (
 )
 from ..plots import calibration_residuals_figure
 from ..uncertainty import analyze_uncertainty
-from .inputs import Data, Model, resolve_arm, resolve_measurements
+from .inputs import Data, Model, check_range, resolve_arm, resolve_measurements
 
 SOLVERS: tuple[str, ...] = ("paper", "weighted", "lm")
 """Solver names, the same in every command and function of the package:
@@ -204,8 +204,8 @@ def calibrate(
     check_solver(solver, noise)
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
-    if max_iterations is not None and max_iterations < 1:
-        raise ValueError(f"max_iterations must be at least 1, got {max_iterations}")
+    if max_iterations is not None:
+        check_range("max_iterations", max_iterations)
     if reject_outliers and loss == "ls":
         raise ValueError(
             "reject_outliers needs a robust loss to flag the outliers: use loss huber or cauchy"

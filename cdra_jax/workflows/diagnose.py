@@ -22,7 +22,7 @@ from ..diagnosis import Diagnosis
 from ..diagnosis import diagnose as _diagnose
 from ..io import Measurements
 from ..plots import residual_vs_regressors_figure, save_diagnosis_plots
-from .inputs import Data, Model, check_at_least, check_seed, resolve_arm, resolve_measurements
+from .inputs import Data, Model, check_range, check_seed, resolve_arm, resolve_measurements
 from .result import JsonResult
 
 
@@ -90,7 +90,7 @@ def diagnose(
         model_label, data_label: names for the report.
     """
     check_seed(seed)
-    check_at_least("folds", folds, 2)
+    check_range("folds", folds)
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
     arm, model_label = resolve_arm(model, model_label)

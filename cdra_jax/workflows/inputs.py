@@ -25,6 +25,28 @@ SEED_MIN, SEED_MAX = -(2**63), 2**63
 """Seeds accepted: ``SEED_MIN <= seed < SEED_MAX`` (what ``jax.random.PRNGKey`` takes with
 64-bit integers)."""
 
+BOUNDS: dict[str, tuple[float, float]] = {
+    "max_iterations": (1, 10_000),
+    "poses": (1, 1_000_000),
+    "trials": (1, 10**9),
+    "chunk": (1, 65_536),
+    "verify": (1, 100_000),
+    "count": (4, 100_000),
+    "pool": (4, 1_000_000),
+    "folds": (2, 100),
+    "cpu_devices": (1, 1024),
+    "noise_pos": (1e-9, 1e6),
+    "noise_rot": (1e-12, 3.2),
+    "d_v": (0.0, 1e6),
+    "d_w": (0.0, 3.2),
+    "cable_noise": (0.0, 1e6),
+}
+"""Allowed range (inclusive) of every numeric argument of the workflows and the command line,
+by argument name (``--max-iterations`` is ``max_iterations``). The bounds keep memory and time
+finite (iteration histories and chunks are allocated up front) and the arithmetic meaningful:
+a noise std of 1e-300 mm would whiten residuals to overflow, a rotation beyond pi rad is no
+rotation error. Counts are integers, scales are in mm and rad."""
+
 Model = Arm | str | os.PathLike | None
 """A model argument: an arm, the path of a model TOML file, or ``None`` for the default arm."""
 Data = Measurements | str | os.PathLike
@@ -64,9 +86,8 @@ def noise_model(position_mm: float | None, rotation_rad: float | None, *, flags=
         raise ValueError(f"{f_pos} and {f_rot} go together: give both or neither")
     if position_mm is None or rotation_rad is None:
         return None
-    for flag, v in ((f_pos, position_mm), (f_rot, rotation_rad)):
-        if not v > 0 or v == math.inf:
-            raise ValueError(f"{flag} must be a positive number, got {v}")
+    check_range(f_pos, position_mm, "noise_pos")
+    check_range(f_rot, rotation_rad, "noise_rot")
     return NoiseModel(position_mm=position_mm, rotation_rad=rotation_rad)
 
 
@@ -77,16 +98,20 @@ def check_seed(seed: int, flag: str = "seed") -> int:
     return seed
 
 
-def check_non_negative(flag: str, value: float) -> float:
-    """``value`` unchanged when it is a finite number >= 0, else a ``ValueError`` naming
-    ``flag``."""
-    if not 0 <= value < math.inf:
-        raise ValueError(f"{flag} must be a non-negative number, got {value}")
-    return value
-
-
-def check_at_least(flag: str, value: int, low: int = 1) -> int:
-    """``value`` unchanged when it is at least ``low``, else ``"<flag> must be >= <low>"``."""
-    if value < low:
-        raise ValueError(f"{flag} must be >= {low}, got {value}")
+def check_range(flag: str, value, name: str | None = None):
+    """``value`` unchanged when it lies in ``BOUNDS[name]`` (``name`` defaults to ``flag`` without
+    leading dashes, dashes as underscores), else a ``ValueError`` naming ``flag`` and the range.
+    Integer bounds demand an integer."""
+    key = name or flag.lstrip("-").replace("-", "_")
+    low, high = BOUNDS[key]
+    integral = isinstance(low, int) and isinstance(high, int)
+    kind = "an integer" if integral else "a number"
+    ok = (
+        isinstance(value, int) and not isinstance(value, bool)
+        if integral
+        else isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    )
+    if not ok or not low <= value <= high:
+        span = f"[{low}, {high}]" if integral else f"[{low:g}, {high:g}]"
+        raise ValueError(f"{flag} must be {kind} in {span}, got {value!r}")
     return value

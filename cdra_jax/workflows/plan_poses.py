@@ -28,7 +28,7 @@ from ..io.files import write_text_atomic
 from ..plots import new_figure
 from ..pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE, select_poses
 from ..uncertainty import predicted_pose_covariance
-from .inputs import Model, check_seed, resolve_arm
+from .inputs import Model, check_range, check_seed, resolve_arm
 from .result import JsonResult
 
 DEFAULT_NOISE = NoiseModel(position_mm=0.08, rotation_rad=1e-3)
@@ -178,8 +178,8 @@ def plan_poses(
         criterion: one of :data:`cdra_jax.pose_selection.CRITERIA` (``i-opt`` default).
         model_label: name of the model in the plan's comments.
     """
-    if count < 4:
-        raise ValueError(f"count must be at least 4 (the paper's minimum), got {count}")
+    check_range("count", count)  # at least 4: the paper's minimum
+    check_range("pool", pool)
     if pool < count:
         raise ValueError(f"pool ({pool}) must be at least count ({count})")
     if criterion not in CRITERIA:

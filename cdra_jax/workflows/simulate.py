@@ -31,7 +31,7 @@ from ..modules.cable_data import simulate_cable_lengths
 from ..plots import new_figure
 from ..simulation import measure, random_frame_errors, sample_poses
 from .calibrate import frame_table
-from .inputs import Model, check_non_negative, check_seed, resolve_arm
+from .inputs import Model, check_range, check_seed, resolve_arm
 
 _FILE_KEYS = ("format", "format_version", "frames")
 DEFAULT_D_V_MM = 1.0
@@ -147,18 +147,17 @@ def simulate(
         cable_noise: std (mm) of Gaussian noise on each cable length (needs ``cables``).
         model_label: name of the model in the report.
     """
-    if poses < 1:
-        raise ValueError(f"poses must be at least 1, got {poses}")
+    check_range("poses", poses)
     is_random = isinstance(errors, str) and errors == "random"
     is_zero = isinstance(errors, str) and errors == "zero"
     if not is_random and (d_v is not None or d_w is not None):
         raise ValueError("d_v/d_w set the range of random errors; they need errors='random'")
-    d_v = check_non_negative("d_v", DEFAULT_D_V_MM if d_v is None else d_v)
-    d_w = check_non_negative("d_w", DEFAULT_D_W_RAD if d_w is None else d_w)
+    d_v = check_range("d_v", DEFAULT_D_V_MM if d_v is None else d_v)
+    d_w = check_range("d_w", DEFAULT_D_W_RAD if d_w is None else d_w)
     check_seed(seed)
     if cable_noise is not None and not cables:
         raise ValueError("cable_noise needs cables=True (noise on the written cable lengths)")
-    cable_noise = check_non_negative("cable_noise", 0.0 if cable_noise is None else cable_noise)
+    cable_noise = check_range("cable_noise", 0.0 if cable_noise is None else cable_noise)
     arm, model_label = resolve_arm(model, model_label)
     X = np.zeros((len(arm.frame_names), 6))
     if is_random:

@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 
 from ..plots import plot_sweep_figure
 from ..sweeps import SweepTable, parse_noise_levels, run_sweep
-from .inputs import Model, check_at_least, check_non_negative, check_seed, resolve_arm
+from .inputs import Model, check_range, check_seed, resolve_arm
 from .result import JsonResult
 
 
@@ -115,9 +115,9 @@ def sweep(
         model_label: name of the model in the table's metadata.
     """
     for flag, n in (("trials", trials), ("verify", verify), ("chunk", chunk)):
-        check_at_least(flag, n)
-    check_non_negative("d_v", d_v)
-    check_non_negative("d_w", d_w)
+        check_range(flag, n)
+    check_range("d_v", d_v)
+    check_range("d_w", d_w)
     check_seed(seed)
     levels = parse_noise_levels(noise_pos, noise_rot)
     arm, model_label = resolve_arm(model, model_label)
