@@ -123,22 +123,15 @@ def test_degenerate_pose_sets_warn_and_give_the_min_norm_answer(files, capsys):
     actual = p.arm.with_frames(p.actual_frames)
     same = np.repeat(p.q[:1], M, axis=0)
     data = _write(d, "same.csv", p, same, np.asarray(tool_pose(actual, same)))
-    assert _run("calibrate", "--data", data, "--out", d / "same.json") == 0
-    r = json.loads((d / "same.json").read_text())
-    assert r["identifiability"]["rank"] == 6 and len(r["identifiability"]["unidentifiable"]) == 18
-    assert r["final"]["rank"] == 6 and r["final"]["delta_p_mm"] < 1e-8
-    err, printed = _errors(capsys)
-    assert "rank 6 of 24 parameters" in printed and printed.count("  unidentifiable: ") == 18
-    assert any("11 pose(s) repeat the module state" in e for e in err)
-    # degenerate data: on stderr as warnings (and in the JSON), not only in the summary
-    assert (
-        "warning: degenerate pose set: rank 6 of 24 parameters from 12 poses, where as many "
-        "poses spread over the joint ranges give 22; 16 more combination(s) are lost"
-    ) in "\n".join(err)
-    assert "warning: 18 parameter combination(s) cannot be identified from tool poses; " in (
-        "\n".join(err)
-    )
-    assert any(w.startswith("degenerate pose set: rank 6 of 24") for w in r["warnings"])
+    # 12 rows of one configuration: refused, naming how many are distinct; nothing written
+    assert _run("calibrate", "--data", data, "--out", d / "same.json") == cli.EXIT_ERROR
+    err, _ = _errors(capsys)
+    assert err == [
+        f"error: {data}: 12 rows but only 1 distinct module configuration(s); the calibration "
+        "needs at least 4 distinct ones (Section IV, Eq. 9): repeated configurations measure "
+        "the same pose again"
+    ]
+    assert not (d / "same.json").exists()
 
     elbow = p.q.copy()
     elbow[:, 3] = 1.1

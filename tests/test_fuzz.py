@@ -521,7 +521,10 @@ def test_huge_rotation_vector_is_a_named_error():
     header = ",".join(COLUMNS)
     huge = "1.8831635608913214e+152"
     row = ["p0" if c == "pose" else huge if c == "measured.rx" else "0.1" for c in COLUMNS]
-    with pytest.raises(MeasurementFileError, match=r"d\.csv.*measured\.rx.*above the limit"):
+    with pytest.raises(
+        MeasurementFileError,
+        match=r"d\.csv, line 2, column 'measured\.rx'.*beyond 1e\+07 in magnitude",
+    ):
         loads_measurements(header + "\n" + ",".join(row) + "\n", ARM, source="d.csv")
 
 

@@ -97,7 +97,10 @@ def _elbow_cable(j, base=None, platform=None, offset=None):
         (_set_frame("matrix", [["1", 0, 0, 0]] * 4), ["frames[2] (forearm)", "4 rows of 4"]),
         (_set_module("limits", [["0", "2"]]), ["modules[1] (elbow).limits", "1 pairs"]),
         (_set_module("axis", ["0", "1", "0"]), ["modules[1] (elbow).axis", "3 numbers"]),
-        (_set_module("mass", 10**400), ["modules[1] (elbow).mass", "non-negative number"]),
+        (
+            _set_module("mass", 10**400),
+            ["modules[1] (elbow).mass", "positive number of kg up to 1e+06"],
+        ),
         (_elbow_cable(0, offset=10**400), ["modules[1] (elbow).cables[0].offset", "a number"]),
         (
             _elbow_cable(0, base=[15.0, 0.0, 30.0], platform=[15.0, 0.0, 30.0]),

@@ -14,6 +14,7 @@ appended to :data:`SUBCOMMANDS`.
 from __future__ import annotations
 
 import sys
+import warnings
 from collections.abc import Sequence
 from types import ModuleType
 
@@ -62,6 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import threading
 
     import jax
+    import numpy as np
 
     from ..io.files import remove_temporary_files_on_sigterm
 
@@ -74,7 +76,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # --help, --version, usage errors
         return int(e.code or 0) if not isinstance(e.code, str) else common.EXIT_USAGE
     try:
-        return int(args.func(args) or 0)
+        # numpy's floating-point warnings are never shown: every bad value is caught by the
+        # readers and the checks, which name the file, row and column instead.
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:  # SIGINT: what was being written is removed
         print("error: interrupted; no partial output file was left", file=sys.stderr)
         return common.EXIT_INTERRUPTED

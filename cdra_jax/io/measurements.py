@@ -21,9 +21,10 @@ Columns (any order; the order is kept when the file is written back):
   ``payload_kg``, ``temperature_c``.
 
 Every cell except ``pose`` must be a finite number in decimal notation (``1_0`` is not read as
-10). Errors are :class:`MeasurementFileError` (a ``ValueError``) naming the file, the line and
-the column. The reader accepts any number of rows; :func:`check_pose_count` enforces the
-calibration's minimum of 4 (Section IV, Eq. 9).
+10) of magnitude at most :data:`MAX_MAGNITUDE`; a pose identifier holds no control characters.
+Errors are :class:`MeasurementFileError` (a ``ValueError``) naming the file, the line and the
+column. The reader accepts any number of rows; :func:`check_pose_count` enforces the
+calibration's minimum of 4 distinct module configurations (Section IV, Eq. 9).
 
 Writing is lossless: numbers are written with ``repr`` (the shortest text that reads back to
 the same float64), identifiers and comments as given, columns in their order. Files are written
@@ -43,6 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import jax
 import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
@@ -68,6 +70,10 @@ QUATERNION_TOL = 1e-6
 ROTVEC_MAX_ANGLE = 1e3
 """A measured quaternion is accepted (and normalised) when ``| |q| - 1 | <= QUATERNION_TOL``."""
 _ORTHO_TOL = 1e-6
+MAX_MAGNITUDE = 1e7
+"""Largest magnitude of any number in a measurement file: 10 km in mm (positions, cable lengths,
+prismatic joints), far beyond any angle in radians or auxiliary value. A larger value is a typo
+or a wrong unit, and would overflow the squared residuals of the solvers."""
 
 Orientation = Literal["rotvec", "quaternion"]
 
@@ -226,7 +232,7 @@ class Measurements:
         if measured is not None:
             T = np.asarray(measured, dtype=float)
             _check_poses(T, m)
-            rv, quat = (np.asarray(a, dtype=float) for a in _rotvec_quaternion(T))
+            rv, quat = _float64(_rotvec_quaternion, T)
             names: tuple[str, ...]
             if orientation == "rotvec":
                 rot, names = rv, ROTVEC_COLUMNS
@@ -265,6 +271,15 @@ class Measurements:
             comments=tuple(comments),
             source="<arrays>",
         )
+
+
+def _float64(fn, *args) -> tuple[np.ndarray, ...]:
+    """``fn(*args)`` computed in float64 whatever JAX's global setting (reading and writing
+    files is lossless also where ``jax_enable_x64`` is off), as numpy arrays."""
+    with jax.enable_x64(True):
+        out = fn(*(np.asarray(a, dtype=np.float64) for a in args))
+        leaves = out if isinstance(out, tuple) else (out,)
+        return tuple(np.asarray(a, dtype=np.float64) for a in leaves)
 
 
 # Compiled once per row count: much faster than dispatching the small ops one by one.
@@ -454,6 +469,13 @@ def loads_measurements(
             raise MeasurementFileError(
                 source, "empty pose identifier", line=start, column=POSE_COLUMN
             )
+        if any(ord(c) < 32 or ord(c) == 127 for c in pid):
+            raise MeasurementFileError(
+                source,
+                f"pose identifier {pid!r} contains a control character; use printable text",
+                line=start,
+                column=POSE_COLUMN,
+            )
         if pid in seen:
             raise MeasurementFileError(
                 source,
@@ -474,6 +496,14 @@ def loads_measurements(
                 raise MeasurementFileError(
                     source,
                     f"{cell.strip()!r} is not a finite number (NaN and inf are not allowed)",
+                    line=start,
+                    column=name,
+                )
+            if abs(v) > MAX_MAGNITUDE:
+                raise MeasurementFileError(
+                    source,
+                    f"{cell.strip()!r} is beyond {MAX_MAGNITUDE:g} in magnitude: not a plausible "
+                    "length (mm), angle (rad) or auxiliary value; check for a typo or a wrong unit",
                     line=start,
                     column=name,
                 )
@@ -527,7 +557,7 @@ def loads_measurements(
                     column=ROTVEC_COLUMNS[j],
                     row=k,
                 )
-            measured = np.asarray(_poses_from_rotvec(xyz, rv), dtype=float)
+            (measured,) = _float64(_poses_from_rotvec, xyz, rv)
         else:
             quat = np.stack([values[c] for c in QUATERNION_COLUMNS], axis=-1)
             norm = np.linalg.norm(quat, axis=-1)
@@ -541,7 +571,7 @@ def loads_measurements(
                     column=QUATERNION_COLUMNS[0],
                     row=k,
                 )
-            measured = np.asarray(_poses_from_quaternion(xyz, quat / norm[:, None]), dtype=float)
+            (measured,) = _float64(_poses_from_quaternion, xyz, quat / norm[:, None])
 
     return Measurements(
         pose_ids=tuple(ids),
@@ -757,7 +787,9 @@ def save_measurements(meas: Measurements, path: str | os.PathLike, *, force: boo
 
 
 def check_pose_count(meas: Measurements, minimum: int = MIN_POSES) -> None:
-    """Raise :class:`MeasurementFileError` when ``meas`` has fewer than ``minimum`` poses.
+    """Raise :class:`MeasurementFileError` when ``meas`` has fewer than ``minimum`` poses or
+    fewer than ``minimum`` distinct module configurations (rows with the same module states
+    measure the same pose again: they average noise but identify nothing new).
 
     The calibration needs at least 4 measured poses (Section IV, Eq. 9).
     """
@@ -766,4 +798,12 @@ def check_pose_count(meas: Measurements, minimum: int = MIN_POSES) -> None:
             meas.source,
             f"{meas.m} measured pose(s); the calibration needs at least {minimum} "
             "(Section IV, Eq. 9)",
+        )
+    distinct = len(np.unique(np.asarray(meas.q, dtype=float), axis=0)) if meas.m else 0
+    if distinct < minimum:
+        raise MeasurementFileError(
+            meas.source,
+            f"{meas.m} rows but only {distinct} distinct module configuration(s); the "
+            f"calibration needs at least {minimum} distinct ones (Section IV, Eq. 9): repeated "
+            "configurations measure the same pose again",
         )

@@ -94,12 +94,33 @@ def _array(value: Any, shape: tuple[int, ...]) -> np.ndarray | None:
         return np.full(shape, np.inf)
 
 
+_MAX_PHYSICAL = {"mass": 1e6, "pretension": 1e9, "stiffness": 1e9}
+"""Upper bounds of the physical module parameters (kg, N, N/mm): beyond them a typo or a unit."""
+MAX_LENGTH_MM = 1e7
+"""Largest length (mm) a model may give, 10 km: a frame offset, cable attachment point, centre of
+mass or prismatic limit beyond it is a typo or a wrong unit, and would overflow the solvers'
+squared residuals long before it meant anything physical."""
+
+
+def _short(v: Any, width: int = 40) -> str:
+    """``repr(v)``, cut to ``width`` characters (a 400-digit integer stays readable)."""
+    text = repr(v)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
 def _vector(source: str, where: str, value: Any, n: int) -> np.ndarray:
     a = _array(value, (n,))
     if a is None:
         raise _err(source, where, f"expected a list of {n} numbers, got {value!r}")
     if not np.all(np.isfinite(a)):
         raise _err(source, where, f"contains a non-finite number: {value!r}")
+    if np.max(np.abs(a), initial=0.0) > MAX_LENGTH_MM:
+        raise _err(
+            source,
+            where,
+            f"{value!r} has an entry beyond {MAX_LENGTH_MM:g} (mm): not a plausible length; "
+            "check for a typo or a wrong unit",
+        )
     return a
 
 
@@ -116,6 +137,13 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
                 source,
                 where,
                 f"'matrix' must be 4 rows of 4 finite numbers, got {spec['matrix']!r}",
+            )
+        if np.max(np.abs(M[:3, 3])) > MAX_LENGTH_MM:
+            raise _err(
+                source,
+                where,
+                f"translation {M[:3, 3].tolist()} of 'matrix' has an entry beyond "
+                f"{MAX_LENGTH_MM:g} (mm): not a plausible length",
             )
         if not np.allclose(M[3], [0, 0, 0, 1], atol=0):
             raise _err(source, where, f"last row of 'matrix' must be [0, 0, 0, 1], got {M[3]}")
@@ -206,6 +234,14 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
             f"{where}.limits",
             f"expected {dof} pairs [low, high] with low < high, got {limits!r}",
         )
+    bound = MAX_LENGTH_MM if kind == "prismatic" else _ROTVEC_MAX_ANGLE
+    if np.max(np.abs(lim)) > bound:
+        unit = "mm" if kind == "prismatic" else "rad"
+        raise _err(
+            source,
+            f"{where}.limits",
+            f"{limits!r} has a limit beyond {bound:g} {unit}: not a plausible joint range",
+        )
     kwargs: dict[str, Any] = {}
     if "cables" in spec:
         cables = spec["cables"]
@@ -249,11 +285,17 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
         kwargs["cable_platform"] = jnp.asarray(np.stack(plat))
         if offset:
             kwargs["cable_offset"] = jnp.asarray(np.asarray(offset))
-    for key in ("mass", "pretension", "stiffness"):
+    for key, unit in (("mass", "kg"), ("pretension", "N"), ("stiffness", "N/mm")):
         if key in spec:
             v = spec[key]
-            if not _is_number(v) or not _finite(v) or v < 0:
-                raise _err(source, f"{where}.{key}", f"expected a non-negative number, got {v!r}")
+            if not _is_number(v) or not _finite(v) or not 0 < v <= _MAX_PHYSICAL[key]:
+                raise _err(
+                    source,
+                    f"{where}.{key}",
+                    f"expected a positive number of {unit} up to {_MAX_PHYSICAL[key]:g}, got "
+                    f"{_short(v)} (leave '{key}' out where it is unknown; zero or a negative value "
+                    "has no physical meaning here)",
+                )
             kwargs[key] = float(v)
     if "com" in spec:
         kwargs["com"] = jnp.asarray(_vector(source, f"{where}.com", spec["com"], 3))
@@ -324,7 +366,8 @@ def load_model(path: str | os.PathLike) -> Arm:
 
 
 def loads_model(text: str, source: str = "<model>") -> Arm:
-    """Parse model TOML text."""
+    """Parse model TOML text (a leading UTF-8 byte-order mark is ignored, as in CSV files)."""
+    text = text.removeprefix("\ufeff")
     try:
         spec = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
