@@ -43,9 +43,11 @@ CSV or, where pyarrow is installed, Parquet.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import importlib.util
+import json
 import math
 import numbers
 import os
@@ -72,7 +74,7 @@ from .calibration import (
 from .calibration.linear import default_rcond
 from .calibration.validation import MIN_POSES
 from .compilation import jit
-from .io.files import write_file_atomic
+from .io.files import write_file_atomic, write_text_atomic
 from .parallel import check_devices, split_over_devices
 from .simulation import StateSampler, sample_poses, simulate_trial
 
@@ -547,6 +549,7 @@ def run_sweep(
     max_iterations: int | None = None,
     devices: Sequence[jax.Device] | None = None,
     progress: bool = True,
+    checkpoint: str | os.PathLike | None = None,
 ) -> SweepTable:
     """Monte-Carlo sweep over noise levels x pose counts x solvers x trials.
 
@@ -571,7 +574,13 @@ def run_sweep(
         devices: devices to split every chunk over (default ``jax.devices()``); several CPU
             devices need a large enough thread pool (:func:`cdra_jax.parallel.check_devices`,
             ``ValueError`` otherwise).
-        progress: show a tqdm progress bar (only when stderr is a terminal).
+        progress: a tqdm progress bar on a terminal, plain progress lines on stderr otherwise.
+        checkpoint: a folder that keeps every finished chunk (created if missing). A sweep
+            interrupted at any point and run again with the same arguments and the same
+            checkpoint loads the finished chunks and computes only the rest: the table is the
+            same as an uninterrupted run's (each trial depends only on its key). A checkpoint
+            of a sweep with other arguments is refused (``ValueError``); remove the folder once
+            the table is saved (:func:`remove_checkpoint`).
 
     Returns:
         A :class:`SweepTable` with ``len(levels) * len(pose_counts) * len(solvers) * trials``
@@ -614,9 +623,36 @@ def run_sweep(
     total = sum(len(c.trials) for c in cells)
     parts: list[dict[str, np.ndarray]] = []
     t0 = time.perf_counter()
+    store = None
+    if checkpoint is not None:
+        settings = {
+            "arm": arm.name,
+            "frames": np.asarray(arm.frames, dtype=float).tolist(),
+            "levels": [list(map(float, lv)) for lv in levels],
+            "pose_counts": pose_counts,
+            "solvers": solvers,
+            "trials": int(trials),
+            "seed": int(seed),
+            "chunk": int(chunk),
+            "d_v": float(d_v),
+            "d_w": float(d_w),
+            "m_verify": int(m_verify),
+            "max_iterations": max_iterations,
+            "sampler": None if sampler is None else getattr(sampler, "__qualname__", "?"),
+            "devices": n_dev,
+            "dtype": str(dtype),
+        }
+        store = _Checkpoint(Path(checkpoint), settings)
     bar = _progress(total, progress)
     try:
-        for cell in cells:
+        for ci, cell in enumerate(cells):
+            n = len(cell.trials)
+            starts = range(0, n, chunk)
+            if store is not None and all(store.has(ci, start) for start in starts):
+                for start in starts:
+                    parts.append(store.load(ci, start))
+                    bar.update(min(start + chunk, n) - start)
+                continue
             batched = _batched_trials(
                 cell.m,
                 cell.solver,
@@ -627,9 +663,12 @@ def run_sweep(
                 sampler,
                 max_iterations,
             )
-            n = len(cell.trials)
-            for start in range(0, n, chunk):
+            for start in starts:
                 stop = min(start + chunk, n)
+                if store is not None and store.has(ci, start):
+                    parts.append(store.load(ci, start))
+                    bar.update(stop - start)
+                    continue
                 pad = chunk - (stop - start)
                 tr = np.pad(cell.trials[start:stop], (0, pad), mode="edge")
                 lv = np.pad(cell.levels[start:stop], ((0, pad), (0, 0)), mode="edge")
@@ -641,6 +680,8 @@ def run_sweep(
                 out["noise_rot"] = cell.levels[start:stop, 1]
                 out["m"] = np.full(stop - start, cell.m)
                 out["solver"] = np.full(stop - start, cell.solver, dtype=object)
+                if store is not None:
+                    store.save(ci, start, out)
                 parts.append(out)
                 bar.update(stop - start)
     finally:
@@ -664,6 +705,60 @@ def run_sweep(
         "key": "fold_in(fold_in(PRNGKey(seed), m), trial)",
     }
     return SweepTable(columns, meta)
+
+
+class _Checkpoint:
+    """Finished chunks of a sweep, one ``.npz`` file each, in a folder with the sweep's
+    arguments (``settings.json``): a chunk file is written atomically (temporary name, then
+    rename), so an interruption leaves whole chunks only."""
+
+    def __init__(self, folder: Path, settings: dict):
+        self.folder = folder
+        text = json.dumps(settings, sort_keys=True)
+        marker = folder / "settings.json"
+        if folder.exists():
+            if not folder.is_dir():
+                raise ValueError(f"checkpoint {folder}: exists and is not a folder")
+            if marker.exists() and marker.read_text() != text:
+                raise ValueError(
+                    f"checkpoint {folder}: holds chunks of a sweep with other arguments; "
+                    "run the same command to resume it, or remove the folder to start afresh"
+                )
+        folder.mkdir(exist_ok=True)
+        if not marker.exists():
+            write_text_atomic(marker, text)
+
+    def _path(self, cell: int, start: int) -> Path:
+        return self.folder / f"cell{cell:04d}-start{start:010d}.npz"
+
+    def has(self, cell: int, start: int) -> bool:
+        return self._path(cell, start).exists()
+
+    def load(self, cell: int, start: int) -> dict[str, np.ndarray]:
+        with np.load(self._path(cell, start), allow_pickle=False) as z:
+            out = {k: z[k] for k in z.files}
+        out["solver"] = out["solver"].astype(object)
+        return out
+
+    def save(self, cell: int, start: int, out: dict[str, np.ndarray]) -> None:
+        arrays = {k: np.asarray(v, dtype=str) if k == "solver" else v for k, v in out.items()}
+
+        def write(f) -> None:
+            np.savez(f, **arrays)
+
+        write_file_atomic(self._path(cell, start), write, binary=True)
+
+
+def remove_checkpoint(folder: str | os.PathLike) -> None:
+    """Remove a sweep checkpoint folder (:func:`run_sweep`'s ``checkpoint``) and its chunks."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    for p in folder.iterdir():
+        if p.suffix == ".npz" or p.name == "settings.json":
+            p.unlink()
+    with contextlib.suppress(OSError):
+        folder.rmdir()
 
 
 def _result_names(codes: np.ndarray) -> np.ndarray:

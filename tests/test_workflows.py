@@ -220,3 +220,36 @@ def test_layers_only_import_downwards():
         for u in ("cli", "workflows"):
             assert f"from ..{u}" not in text and f"from .{u} " not in text, (rel, u)
             assert f"cdra_jax.{u} import" not in text, (rel, u)
+
+
+def test_an_interrupted_sweep_resumes_from_its_finished_chunks(tmp_path, monkeypatch):
+    from cdra_jax import sweeps
+
+    kwargs = dict(solvers=["paper"], trials=6, chunk=2, verify=3, progress=False)
+    whole = workflows.sweep(None, [0.05], [5e-4], [5], **kwargs).table
+    ck = tmp_path / "ck"
+    calls = []
+    real = sweeps.split_over_devices
+
+    def interrupted(*args, **kw):
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # Ctrl-C after two finished chunks
+        calls.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(sweeps, "split_over_devices", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        workflows.sweep(None, [0.05], [5e-4], [5], checkpoint=ck, **kwargs)
+    assert len(list(ck.glob("*.npz"))) == 2 and not list(ck.glob(".*.tmp"))
+    calls.clear()
+    monkeypatch.setattr(
+        sweeps, "split_over_devices", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    resumed = workflows.sweep(None, [0.05], [5e-4], [5], checkpoint=ck, **kwargs).table
+    assert len(calls) == 1  # only the third chunk is computed again
+    for c in whole.columns:
+        np.testing.assert_array_equal(resumed[c], whole[c], err_msg=c)
+    with pytest.raises(ValueError, match="other arguments"):
+        workflows.sweep(None, [0.05], [5e-4], [5], checkpoint=ck, **{**kwargs, "trials": 8})
+    sweeps.remove_checkpoint(ck)
+    assert not ck.exists()

@@ -7,15 +7,19 @@ Usage::
         [--plot fig.png] [--seed 0] [--model M] [--d-v 1 --d-w 0.05] [--verify 50]
         [--no-progress] [--force]
 
-A thin layer over :func:`cdra_jax.workflows.sweep`. ``--noise-rot`` takes one value for all
-position levels or one per level; ``0`` and ``0`` is the noise-free level. Writes the tidy
-per-trial table (``.csv``, or ``.parquet`` where pyarrow is installed) and prints the median
-held-out accuracy per cell. Progress: a bar on a terminal, plain lines on stderr otherwise.
+A thin layer over :func:`cdra_jax.workflows.sweep`. Finished chunks are kept in a hidden folder
+beside the output (``.<out>.chunks``) until the table is written: after an interruption (Ctrl-C,
+``SIGTERM``, a crash) the same command resumes where it stopped and writes the same table.
+``--noise-rot`` takes one value for all position levels or one per level; ``0`` and ``0`` is the
+noise-free level. Writes the tidy per-trial table (``.csv``, or ``.parquet`` where pyarrow is
+installed) and prints the median held-out accuracy per cell. Progress: a bar on a terminal, plain
+lines on stderr otherwise.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from ..io.files import check_distinct_files, check_output
@@ -68,9 +72,11 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="Monte-Carlo noise-sensitivity sweep (noise x poses x solvers x trials)",
         description="Simulate and calibrate many trials (Section V/VI procedure: module states "
         "within the joint limits and, where the model has cables, with tension closure) for every "
-        "combination of noise level, pose count and solver; write one row per trial.",
+        "combination of noise level, pose count and solver; write one row per trial. Finished "
+        "chunks are kept in the hidden folder .<out>.chunks beside --out until the table is "
+        "written: after an interruption the same command resumes where it stopped.",
     )
-    p.add_argument("--model", metavar="M", help="model TOML file (default: the embedded CDRA)")
+    common.add_model_option(p)
     p.add_argument(
         "--noise-pos", metavar="MM,...", type=_floats, required=True, help="position noise std(s)"
     )
@@ -146,9 +152,14 @@ def run(args: argparse.Namespace) -> int:
             pass
     jax.config.update("jax_enable_x64", True)
     from ..io import save_figure_atomic
+    from ..sweeps import remove_checkpoint
     from ..workflows import sweep
     from ..workflows.inputs import check_seed
 
+    checkpoint = out.parent / f".{out.name}.chunks"
+    if checkpoint.is_dir():
+        done = len(list(checkpoint.glob("*.npz")))
+        print(f"sweep: resuming from {done} finished chunk(s) in {checkpoint}", file=sys.stderr)
     result = sweep(
         args.model,
         args.noise_pos,
@@ -162,8 +173,10 @@ def run(args: argparse.Namespace) -> int:
         d_w=args.d_w,
         verify=args.verify,
         progress=not args.no_progress,
+        checkpoint=checkpoint,
     )
     result.save(out, force=args.force)
+    remove_checkpoint(checkpoint)
     lines = [result.report(), common.wrote(out)]
     if args.plot:
         lines.append(common.wrote(save_figure_atomic(result.plot(), args.plot, force=args.force)))

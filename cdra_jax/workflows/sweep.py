@@ -96,6 +96,7 @@ def sweep(
     d_w: float = 0.05,
     verify: int = 50,
     progress: bool = True,
+    checkpoint: str | os.PathLike | None = None,
     model_label: str | None = None,
 ) -> SweepRun:
     """Monte-Carlo sweep of the calibration's accuracy over noise levels, pose counts, solvers.
@@ -112,6 +113,9 @@ def sweep(
         d_v, d_w: preset error ranges (mm, rad; the paper's 1 mm and 0.05 rad).
         verify: held-out poses per trial.
         progress: a progress bar on a terminal, progress lines on stderr otherwise.
+        checkpoint: a folder keeping the finished chunks, so that the same call after an
+            interruption resumes where it stopped (same table; see
+            :func:`cdra_jax.sweeps.run_sweep`).
         model_label: name of the model in the table's metadata.
     """
     for flag, n in (("trials", trials), ("verify", verify), ("chunk", chunk)):
@@ -133,6 +137,7 @@ def sweep(
         d_w=d_w,
         m_verify=verify,
         progress=progress,
+        checkpoint=checkpoint,
     )
     table.meta["model"] = model_label
     return SweepRun(table, model_label)
