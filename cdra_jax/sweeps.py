@@ -57,6 +57,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -741,7 +742,9 @@ class _Checkpoint:
         return out
 
     def save(self, cell: int, start: int, out: dict[str, np.ndarray]) -> None:
-        arrays = {k: np.asarray(v, dtype=str) if k == "solver" else v for k, v in out.items()}
+        arrays: dict[str, Any] = {
+            k: np.asarray(v, dtype=str) if k == "solver" else v for k, v in out.items()
+        }
 
         def write(f) -> None:
             np.savez(f, **arrays)

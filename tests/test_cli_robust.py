@@ -481,8 +481,13 @@ WARNINGS = {
     "a typo, least squares": (
         _typo,
         [],
-        cli.EXIT_NOT_CONVERGED,
-        [TYPO, LARGE, "warning: not converged: the calibration did not converge"],
+        cli.EXIT_UNTRUSTED,  # the typo pulls the fit further from the points than nominal
+        [
+            TYPO,
+            LARGE,
+            "warning: not converged: the calibration did not converge",
+            "error: untrusted result: the calibrated model is worse than the nominal one",
+        ],
     ),
     "a typo, robust loss": (
         _typo,
@@ -545,6 +550,9 @@ def test_warning_rows_give_warning_lines_and_write_the_result(files, tmp_path, c
         assert line.startswith(prefix), (case, line)
     r = json.loads(out.read_text())  # written in every case, converged or not
     assert r["converged"] is (code == cli.EXIT_OK)
+    assert r["trusted"] is (code != cli.EXIT_UNTRUSTED)
     for line in err:
-        if not line.startswith("warning: not converged"):
+        if line.startswith("error: untrusted result: "):
+            assert line.removeprefix("error: untrusted result: ") == r["trust"]["reason"]
+        elif not line.startswith("warning: not converged"):
             assert line.removeprefix("warning: ") in r["warnings"]

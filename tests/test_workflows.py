@@ -253,3 +253,45 @@ def test_an_interrupted_sweep_resumes_from_its_finished_chunks(tmp_path, monkeyp
         workflows.sweep(None, [0.05], [5e-4], [5], checkpoint=ck, **{**kwargs, "trials": 8})
     sweeps.remove_checkpoint(ck)
     assert not ck.exists()
+
+
+def test_a_fit_worse_than_nominal_is_marked_untrusted(tmp_path, capsys):
+    # The nominal model is the true arm and the positions are exact; the orientations carry
+    # 0.2 rad of noise. The unweighted fit (mm and rad summed as they come) trades position for
+    # orientation: its model predicts the measured points worse than the nominal one.
+    sim = workflows.simulate(None, 8, seed=3, errors="zero", noise=workflows.noise_model(1e-9, 0.2))
+    run = workflows.calibrate(None, sim.measurements, solver="paper")
+    trust = run.result["trust"]
+    assert run.trusted is False and run.result["trusted"] is False
+    assert trust["calibrated_position_mm"] > trust["nominal_position_mm"]
+    assert "worse than the nominal" in trust["reason"]
+    data, out = tmp_path / "d.csv", tmp_path / "r.json"
+    sim.save(data)
+    argv = ["calibrate", "--data", data, "--out", out, "--solver", "paper"]
+    assert cli.main([str(a) for a in argv]) == cli.EXIT_UNTRUSTED
+    err = capsys.readouterr().err
+    assert "error: untrusted result: the calibrated model is worse than the nominal one" in err
+    assert json.loads(out.read_text())["trusted"] is False  # still written, marked
+
+
+def test_model_out_and_compare(truth_sim, calibration, tmp_path, capsys):
+    _, held_out = truth_sim
+    cal = calibration.save_model(tmp_path / "cal.toml")
+    assert calibration.trusted and calibration.result["trusted"] is True
+    from_model = workflows.validate(cal, held_out.measurements).to_dict()
+    from_result = workflows.validate(None, held_out.measurements, result=calibration.to_dict())
+    # the written model predicts exactly what the result applied to the nominal model does
+    assert from_model["position_error_mm"] == from_result.to_dict()["position_error_mm"]
+    both = workflows.validate(cal, held_out.measurements, compare=cdra_jax.default_arm())
+    d = both.to_dict()
+    assert (
+        d["compare"]["position_error_mm"] == from_result.to_dict()["nominal"]["position_error_mm"]
+    )
+    assert "compare_position_mm" in d["rows"][0] and "compare position" in both.report()
+    with pytest.raises(ValueError, match="either result"):
+        workflows.validate(cal, held_out.measurements, result=calibration.to_dict(), compare=cal)
+    data = tmp_path / "h.csv"
+    held_out.save(data)
+    argv = ["validate", "--model", cal, "--data", data, "--compare", cal]
+    assert cli.main([str(a) for a in argv]) == 0
+    assert "compared with:" in capsys.readouterr().out

@@ -9,4 +9,5 @@ from .common import EXIT_INTERRUPTED as EXIT_INTERRUPTED
 from .common import EXIT_NOT_CONVERGED as EXIT_NOT_CONVERGED
 from .common import EXIT_OK as EXIT_OK
 from .common import EXIT_TERMINATED as EXIT_TERMINATED
+from .common import EXIT_UNTRUSTED as EXIT_UNTRUSTED
 from .common import EXIT_USAGE as EXIT_USAGE

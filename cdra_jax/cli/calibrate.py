@@ -1,8 +1,10 @@
 """``cdra-jax calibrate``: identify the fixed-frame errors of a model from a measurement CSV.
 
 A thin layer over :func:`cdra_jax.workflows.calibrate`: prints its report, writes the result
-JSON, prints each warning as one ``warning: ...`` line on stderr, and exits with 3 when the
-solver did not converge (the result file is still written, with ``"converged": false``).
+JSON (and, with ``--model-out``, the calibrated model TOML), prints each warning as one
+``warning: ...`` line on stderr, and exits with 3 when the solver did not converge and with 4 when
+the calibrated model fits the measured points worse than the nominal one (the result file is
+still written, with ``"converged": false`` or ``"trusted": false``).
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         description=(
             "Calibrate the fixed transforms of a modular arm from measured tool poses "
             "(Mustafa et al. 2008, Eqs. 7-21) and write the result as JSON. Exit code 3 when "
-            "the solver did not converge (the result is still written)."
+            "the solver did not converge, 4 when the calibrated model fits the measured points "
+            "worse than the nominal one (the result is still written, marked untrusted)."
         ),
     )
     common.add_model_option(p)
@@ -59,6 +62,11 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="iteration cap (default: 20 for paper/weighted, 50 for lm; per round for a "
         "robust loss)",
     )
+    p.add_argument(
+        "--model-out",
+        metavar="M",
+        help="also write the calibrated model as a model TOML (loadable by every command)",
+    )
     p.add_argument("--plot", metavar="PNG", help="also write the residual figure")
     common.add_force_option(p)
     p.set_defaults(func=run)
@@ -81,10 +89,11 @@ def run(args: argparse.Namespace) -> int:
             "--noise-pos and --noise-rot"
         )
     check_distinct_files(
-        [("--out", args.out), ("--plot", args.plot)],
+        [("--out", args.out), ("--model-out", args.model_out), ("--plot", args.plot)],
         [("--data", args.data), ("--model", args.model)],
     )
     check_output(args.out, args.force, "--out")
+    check_output(args.model_out, args.force, "--model-out")
     check_output(args.plot, args.force, "--plot")
 
     from ..io import save_figure_atomic
@@ -101,11 +110,15 @@ def run(args: argparse.Namespace) -> int:
     )
     print(run_.report())
     print(common.wrote(run_.save(args.out, force=args.force)))
+    if args.model_out:
+        print(common.wrote(run_.save_model(args.model_out, force=args.force)))
     if args.plot:
         print(common.wrote(save_figure_atomic(run_.plot(), args.plot, force=args.force)))
     for w in run_.warnings:
         print(f"warning: {w}", file=sys.stderr)
     if not run_.converged:
         print(f"warning: not converged: {run_.result['message']}", file=sys.stderr)
-        return common.EXIT_NOT_CONVERGED
-    return common.EXIT_OK
+    if not run_.trusted:
+        print(f"error: untrusted result: {run_.result['trust']['reason']}", file=sys.stderr)
+        return common.EXIT_UNTRUSTED
+    return common.EXIT_OK if run_.converged else common.EXIT_NOT_CONVERGED

@@ -18,7 +18,18 @@ import warnings
 from collections.abc import Sequence
 from types import ModuleType
 
-from . import calibrate, common, demo, diagnose, plan_poses, simulate, sweep, validate
+from . import (
+    calibrate,
+    common,
+    demo,
+    diagnose,
+    export_model,
+    import_model,
+    plan_poses,
+    simulate,
+    sweep,
+    validate,
+)
 
 SUBCOMMANDS: tuple[ModuleType, ...] = (
     demo,
@@ -28,6 +39,8 @@ SUBCOMMANDS: tuple[ModuleType, ...] = (
     diagnose,
     sweep,
     plan_poses,
+    import_model,
+    export_model,
 )
 """The subcommand modules, in the order ``--help`` lists them."""
 

@@ -15,6 +15,9 @@ import sys
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOT_CONVERGED = 0, 1, 2, 3
 """Exit codes: success; bad input or a file problem (one ``error: ...`` line on stderr); wrong
 usage (argparse); a calibration that did not converge (its result file is still written)."""
+EXIT_UNTRUSTED = 4
+"""The calibrated model fits the measured points worse than the nominal one: the result is still
+written, with ``"trusted": false``, and must not be used."""
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 """Interrupted by ``SIGINT`` (Ctrl-C) or terminated by ``SIGTERM``; no partial file is left."""
 

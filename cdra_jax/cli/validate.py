@@ -33,6 +33,12 @@ def register(subparsers) -> argparse.ArgumentParser:
         metavar="R",
         help="calibration result JSON (from cdra-jax calibrate) to apply to the model",
     )
+    p.add_argument(
+        "--compare",
+        metavar="M2",
+        help="a second model TOML whose errors are shown beside (e.g. the nominal model next to "
+        "a calibrated one from calibrate --model-out); not with --result",
+    )
     p.add_argument("--out", metavar="V", help="write the validation JSON (per-row errors)")
     p.add_argument("--plot", metavar="PNG", help="write the per-row error figure")
     common.add_force_option(p)
@@ -44,15 +50,22 @@ def run(args: argparse.Namespace) -> int:
     """Run ``validate``; returns the exit code (0)."""
     check_distinct_files(
         [("--out", args.out), ("--plot", args.plot)],
-        [("--data", args.data), ("--model", args.model), ("--result", args.result)],
+        [
+            ("--data", args.data),
+            ("--model", args.model),
+            ("--result", args.result),
+            ("--compare", args.compare),
+        ],
     )
+    if args.result is not None and args.compare is not None:
+        raise ValueError("--result and --compare: give one (a result applies to --model)")
     check_output(args.out, args.force, "--out")
     check_output(args.plot, args.force, "--plot")
 
     from ..io import save_figure_atomic
     from ..workflows import validate
 
-    v = validate(args.model, args.data, result=args.result)
+    v = validate(args.model, args.data, result=args.result, compare=args.compare)
     lines = [v.report()]
     if args.out:
         lines.append(common.wrote(v.save(args.out, force=args.force)))

@@ -1,5 +1,9 @@
 """File contracts: model TOML, measurement CSV, result JSON (see ``shared/design.md``)."""
 
+from .dh import DHFileError as DHFileError
+from .dh import arm_from_dh as arm_from_dh
+from .dh import load_dh as load_dh
+from .dh import loads_dh as loads_dh
 from .files import OutputExistsError as OutputExistsError
 from .files import save_figure_atomic as save_figure_atomic
 from .files import write_bytes_atomic as write_bytes_atomic
@@ -36,3 +40,5 @@ from .results import loads_result as loads_result
 from .results import result_frames as result_frames
 from .results import result_to_dict as result_to_dict
 from .results import save_result as save_result
+from .urdf import UrdfFileError as UrdfFileError
+from .urdf import load_urdf_chain as load_urdf_chain

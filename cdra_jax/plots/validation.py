@@ -12,9 +12,10 @@ from matplotlib.figure import Figure
 from .canvas import new_figure
 
 
-def validation_figure(validation: Mapping[str, Any]) -> Figure:
+def validation_figure(validation: Mapping[str, Any], reference: str = "nominal") -> Figure:
     """Per-row position error (mm) and, where measured, rotation error (rad) of the validated
-    model, with the nominal model's errors for comparison when the validation holds them."""
+    model, with a reference model's errors beside when the validation holds them (``reference``:
+    ``"nominal"`` or ``"compare"``, the prefix of its per-row columns)."""
     rows = list(validation["rows"])
     x = np.arange(len(rows))
     has_rot = validation.get("rotation_error_rad") is not None
@@ -24,7 +25,7 @@ def validation_figure(validation: Mapping[str, Any]) -> Figure:
         panels.append(("rotation_rad", "rotation error [rad]"))
     for i, (key, label) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
-        for prefix, style, name in (("nominal_", "o", "nominal"), ("", "o", "model")):
+        for prefix, style, name in ((f"{reference}_", "o", reference), ("", "o", "model")):
             vals = [r.get(prefix + key) for r in rows]
             if all(v is None for v in vals):
                 continue

@@ -15,6 +15,11 @@ from .demo import DemoRun as DemoRun
 from .demo import demo as demo
 from .diagnose import DiagnosisRun as DiagnosisRun
 from .diagnose import diagnose as diagnose
+from .export_model import ExportedURDF as ExportedURDF
+from .export_model import export_urdf as export_urdf
+from .import_model import ImportedModel as ImportedModel
+from .import_model import import_dh as import_dh
+from .import_model import import_urdf as import_urdf
 from .inputs import noise_model as noise_model
 from .plan_poses import PosePlan as PosePlan
 from .plan_poses import plan_poses as plan_poses

@@ -35,6 +35,7 @@ from ..io import (
     check_pose_count,
     dumps_result,
     result_to_dict,
+    save_model,
     save_result,
 )
 from ..plots import calibration_residuals_figure
@@ -75,6 +76,44 @@ def check_solver(solver: str, noise: NoiseModel | None, flag: str = "solver") ->
             "noise model (--noise-pos and --noise-rot)"
         )
     return solver
+
+
+def trust_check(result: dict) -> dict[str, Any]:
+    """Whether a calibration result is better than the model it started from, on its own data.
+
+    Compares the mean measured-position residual ``|p_meas - p_model|`` (mm) of the calibrated
+    model with the nominal model's over the fitted poses. A calibration whose model predicts the
+    measured points worse than the nominal one (possible when an unweighted fit trades position
+    for orientation, or when gross errors pull it away) is not trusted: the command line exits
+    with :data:`cdra_jax.cli.EXIT_UNTRUSTED` and the result holds ``"trusted": false``.
+
+    Returns:
+        ``{"trusted": bool, "nominal_position_mm": mean, "calibrated_position_mm": mean,
+        "reason": text or None}``.
+    """
+    rows = result["residuals"]
+    nominal = [r["nominal_position_mm"] for r in rows if r["nominal_position_mm"] is not None]
+    calibrated = [
+        r["calibrated_position_mm"] for r in rows if r["calibrated_position_mm"] is not None
+    ]
+    n_mean = sum(nominal) / len(nominal) if nominal else math.nan
+    c_mean = sum(calibrated) / len(calibrated) if len(calibrated) == len(rows) else math.nan
+    trusted = bool(c_mean <= n_mean * (1 + 1e-9) + 1e-12)
+    reason = None
+    if not trusted:
+        reason = (
+            f"the calibrated model is worse than the nominal one on the measured points: mean "
+            f"position residual {c_mean:.4g} mm against {n_mean:.4g} mm nominal; do not use "
+            "it. Try weighting by the measuring device's noise (--noise-pos/--noise-rot with "
+            "--solver weighted or lm), a robust loss (--loss huber), checking the data for gross "
+            "errors (units, swapped rows, registration of the device frame), or more poses"
+        )
+    return {
+        "trusted": trusted,
+        "nominal_position_mm": None if math.isnan(n_mean) else n_mean,
+        "calibrated_position_mm": None if math.isnan(c_mean) else c_mean,
+        "reason": reason,
+    }
 
 
 def implausible_frame_errors_warning(result: dict) -> str | None:
@@ -135,6 +174,12 @@ class CalibrationRun:
         return bool(self.result["converged"])
 
     @property
+    def trusted(self) -> bool:
+        """Whether the calibrated model fits the measured points at least as well as the nominal
+        one (:func:`trust_check`); an untrusted result must not be used."""
+        return bool(self.result["trusted"])
+
+    @property
     def calibrated_arm(self) -> Arm:
         """The calibrated model (Eq. 19: the identified errors applied to the nominal frames)."""
         return calibrated_arm_from_result(self.result, self.arm)
@@ -150,6 +195,11 @@ class CalibrationRun:
     def save(self, path: str | os.PathLike, *, force: bool = False) -> Path:
         """Write the result JSON atomically; an existing file is replaced only with ``force``."""
         return save_result(self.result, path, force=force)
+
+    def save_model(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write the calibrated model as a model TOML file (the model contract, frames as exact
+        4x4 matrices), loadable by every command (``--model``)."""
+        return save_model(self.calibrated_arm, path, exact=True, force=force)
 
     def report(self) -> str:
         """The plain-text report ``cdra-jax calibrate`` prints (iterations, Eqs. 20-21, the
@@ -270,6 +320,9 @@ def calibrate(
     implausible = implausible_frame_errors_warning(result)
     if implausible is not None:
         result["warnings"].append(implausible)
+    trust = trust_check(result)
+    result["trusted"] = trust["trusted"]
+    result["trust"] = trust
     # stderr shows each warning once; those of the identifiability analysis only with a
     # degenerate pose set (otherwise they are part of the summary).
     shown = [*plausibility, *degenerate]

@@ -60,28 +60,35 @@ class ValidationRun(JsonResult):
         measurements: the held-out measurements.
         position_error_mm: ``(m,)`` per-row position error (mm).
         rotation_error_rad: ``(m,)`` per-row rotation error (rad).
-        nominal_position_error_mm: ``(m,)`` the nominal model's, when a result was applied.
-        nominal_rotation_error_rad: likewise for the rotation, or ``None``.
+        reference_position_error_mm: ``(m,)`` the reference model's (the nominal model when a
+            result was applied, the ``compare`` model otherwise), or ``None``.
+        reference_rotation_error_rad: likewise for the rotation, or ``None``.
         model_label: the model file (or ``embedded CDRA``).
         data_label: the measurement file.
         result_label: the calibration result applied, or ``None``.
+        reference: ``"nominal"`` (a result was applied) or ``"compare"`` (a second model was
+            given): the key of the reference's block and the prefix of its per-row columns.
+        reference_label: the reference model's label.
     """
 
     arm: Arm
     measurements: Measurements
     position_error_mm: np.ndarray
     rotation_error_rad: np.ndarray
-    nominal_position_error_mm: np.ndarray | None
-    nominal_rotation_error_rad: np.ndarray | None
+    reference_position_error_mm: np.ndarray | None
+    reference_rotation_error_rad: np.ndarray | None
     model_label: str
     data_label: str
     result_label: str | None = None
+    reference: str = "nominal"
+    reference_label: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The validation mapping: ``position_error_mm`` and ``rotation_error_rad`` pooled
         (``mean``, ``rms``, ``max``, ``n``), the nominal model's beside them when a result was
         applied, and ``rows``, one entry per measured pose."""
-        nominal = self.nominal_position_error_mm is not None
+        ref = self.reference_position_error_mm
+        ref_rot = self.reference_rotation_error_rad
         rows = []
         for i, pose in enumerate(self.measurements.pose_ids):
             row: dict[str, Any] = {
@@ -89,11 +96,9 @@ class ValidationRun(JsonResult):
                 "position_mm": float(self.position_error_mm[i]),
                 "rotation_rad": float(self.rotation_error_rad[i]),
             }
-            if nominal:
-                assert self.nominal_rotation_error_rad is not None
-                assert self.nominal_position_error_mm is not None
-                row["nominal_position_mm"] = float(self.nominal_position_error_mm[i])
-                row["nominal_rotation_rad"] = float(self.nominal_rotation_error_rad[i])
+            if ref is not None and ref_rot is not None:
+                row[f"{self.reference}_position_mm"] = float(ref[i])
+                row[f"{self.reference}_rotation_rad"] = float(ref_rot[i])
             rows.append(row)
         out: dict[str, Any] = {
             "format": "cdra_jax.validation",
@@ -104,12 +109,11 @@ class ValidationRun(JsonResult):
         }
         if self.result_label is not None:
             out["inputs"]["result"] = self.result_label
-        if nominal:
-            assert self.nominal_position_error_mm is not None
-            assert self.nominal_rotation_error_rad is not None
-            out["nominal"] = {
-                "position_error_mm": pooled(self.nominal_position_error_mm),
-                "rotation_error_rad": pooled(self.nominal_rotation_error_rad),
+        if ref is not None and ref_rot is not None:
+            out[self.reference] = {
+                "model": self.reference_label,
+                "position_error_mm": pooled(ref),
+                "rotation_error_rad": pooled(ref_rot),
             }
         out["rows"] = rows
         return out
@@ -133,16 +137,20 @@ class ValidationRun(JsonResult):
             )
             return f"  {label + ' [' + unit + ']':<22}{vals}"
 
-        if "nominal" in d:
-            lines.append(row("nominal position", d["nominal"]["position_error_mm"], "mm"))
-            lines.append(row("nominal rotation", d["nominal"]["rotation_error_rad"], "rad"))
+        if self.reference in d:
+            block, name = d[self.reference], self.reference
+            if self.reference == "compare":
+                lines.insert(1, f"compared with: {self.reference_label}")
+            lines.append(row(f"{name} position", block["position_error_mm"], "mm"))
+            lines.append(row(f"{name} rotation", block["rotation_error_rad"], "rad"))
         lines.append(row("position", d["position_error_mm"], "mm"))
         lines.append(row("rotation", d["rotation_error_rad"], "rad"))
         return "\n".join(lines)
 
     def plot(self) -> Figure:
-        """Per-row errors (:func:`cdra_jax.plots.validation_figure`)."""
-        return validation_figure(self.to_dict())
+        """Per-row errors of the model and the reference, side by side
+        (:func:`cdra_jax.plots.validation_figure`)."""
+        return validation_figure(self.to_dict(), reference=self.reference)
 
 
 def validate(
@@ -150,6 +158,7 @@ def validate(
     data: Data,
     *,
     result: Mapping[str, Any] | str | os.PathLike | None = None,
+    compare: Arm | str | os.PathLike | None = None,
     model_label: str | None = None,
     data_label: str | None = None,
 ) -> ValidationRun:
@@ -161,6 +170,10 @@ def validate(
         data: held-out :class:`~cdra_jax.io.Measurements` or a measurement CSV path.
         result: a calibration result (mapping or result JSON path) to apply to ``model``
             (Eq. 19); the nominal model's errors are then reported beside.
+        compare: a second model (an :class:`~cdra_jax.arm.Arm` or model TOML path) whose
+            errors are reported beside (for example the nominal model next to a calibrated one
+            from ``calibrate --model-out``; ``default_arm()`` for the embedded one); not together
+            with ``result``.
         model_label, data_label: names for the report.
 
     Raises:
@@ -170,6 +183,8 @@ def validate(
     meas, data_label, _ = resolve_measurements(data, nominal, data_label)
     if meas.measured is None:
         raise ValueError(f"{data_label}: no measured tool poses (measured.* columns) to compare")
+    if result is not None and compare is not None:
+        raise ValueError("give either result (applied to the model) or compare, not both")
     result_label = None
     arm = nominal
     if result is not None:
@@ -181,16 +196,29 @@ def validate(
         arm = calibrated_arm_from_result(result, nominal)
     dp, dR = _errors(arm, meas.q, meas.measured)
     ndp = ndR = None
+    reference, reference_label = "nominal", None
     if result is not None:
         ndp, ndR = _errors(nominal, meas.q, meas.measured)
+        reference_label = model_label
+    elif compare is not None:
+        other, reference_label = resolve_arm(compare)
+        if other.state_names != nominal.state_names:
+            raise ValueError(
+                f"compare {reference_label}: its module states {other.state_names} differ from "
+                f"the model's {nominal.state_names}"
+            )
+        ndp, ndR = _errors(other, meas.q, meas.measured)
+        reference = "compare"
     return ValidationRun(
         arm=arm,
         measurements=meas,
         position_error_mm=dp,
         rotation_error_rad=dR,
-        nominal_position_error_mm=ndp,
-        nominal_rotation_error_rad=ndR,
+        reference_position_error_mm=ndp,
+        reference_rotation_error_rad=ndR,
         model_label=model_label,
         data_label=data_label,
         result_label=result_label,
+        reference=reference,
+        reference_label=reference_label,
     )
