@@ -45,8 +45,7 @@ def render() -> str:
         "",
         "Every command takes `--model M.toml` where it needs a model (default: the embedded 7-DOF",
         "CDRA) and refuses to overwrite an existing output file unless `--force` is given.",
-        "Exit codes: 0 success; 1 bad input or a file problem (one `error: ...` line on stderr);",
-        "2 wrong usage; 3 the calibration did not converge (the result file is still written).",
+        "Exit codes: see [Errors and exit codes](errors.md).",
         "",
         "## cdra-jax",
         "",
@@ -57,6 +56,8 @@ def render() -> str:
     ]
     for name, sub in _subcommands(parser):
         lines += [f"## {name}", "", "```text", _help(sub), "```", ""]
+        for inner, subsub in _subcommands(sub):  # e.g. import urdf, import dh, export urdf
+            lines += [f"### {name} {inner}", "", "```text", _help(subsub), "```", ""]
     return "\n".join(lines)
 
 

@@ -112,10 +112,14 @@ def loads_dh(text: str, source: str = "<dh>") -> list[DHRow]:
     text = text.removeprefix("\ufeff")
     lines = text.splitlines()
     start = 0
-    while start < len(lines) and (lines[start].lstrip().startswith("#") or not lines[start].strip()):
+    while start < len(lines) and (
+        lines[start].lstrip().startswith("#") or not lines[start].strip()
+    ):
         start += 1
     if start == len(lines):
-        raise DHFileError(f"{source}: no header row (expected columns {','.join(REQUIRED_COLUMNS)})")
+        raise DHFileError(
+            f"{source}: no header row (expected columns {','.join(REQUIRED_COLUMNS)})"
+        )
     reader = csv.reader(io.StringIO("\n".join(lines[start:])))
     header = [h.strip() for h in next(reader)]
     hline = start + 1
@@ -164,7 +168,9 @@ def loads_dh(text: str, source: str = "<dh>") -> list[DHRow]:
                 f"{where} 'type': expected revolute or prismatic, got {cell['type']!r}"
             )
 
-        def number(c: str, bound: float, unit: str, *, line: int = line) -> float:
+        def number(
+            c: str, bound: float, unit: str, *, line: int = line, cell: dict = cell
+        ) -> float:
             try:
                 v = float(cell[c])
             except ValueError:
@@ -229,7 +235,7 @@ def arm_from_dh(
     for r in rows:
         kw = {} if r.limits is None else {"limits": r.limits}
         make = revolute if r.kind == "revolute" else prismatic
-        mods.append(make(r.joint, [0.0, 0.0, 1.0], **kw))
+        mods.append(make(r.joint, np.array([0.0, 0.0, 1.0]), **kw))
     taken = {r.joint for r in rows}
     names = []
     for i in range(len(rows) + 1):

@@ -117,9 +117,10 @@ def read_urdf(source: str | os.PathLike | bytes, label: str | None = None) -> An
                 filename_handler=_keep_filename,
             )
         except Exception as e:  # yourdfpy raises what the XML gives it (KeyError, TypeError...)
+            if log.messages:
+                raise UrdfFileError(f"{label}: malformed XML: {log.messages[0]}") from None
             detail = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
-            first = f"{log.messages[0]}; " if log.messages else ""
-            raise UrdfFileError(f"{label}: not a readable URDF file: {first}{detail}") from None
+            raise UrdfFileError(f"{label}: not a readable URDF file: {detail}") from None
     if log.messages:
         raise UrdfFileError(f"{label}: malformed XML: {log.messages[0]}")
     _check_tree(urdf, label)
@@ -315,9 +316,7 @@ def segments(joints: Sequence[Any]) -> list[list[Any]]:
     return out
 
 
-def chain_arm(
-    urdf: Any, base: str, tip: str, source: str, name: str | None = None
-) -> UrdfChain:
+def chain_arm(urdf: Any, base: str, tip: str, source: str, name: str | None = None) -> UrdfChain:
     """The model of the chain from link ``base`` to link ``tip`` of a loaded URDF.
 
     The model's tool pose ``tool_pose(arm, q)`` (q in the chain's movable-joint order, rad or
@@ -473,8 +472,7 @@ def apply_arm_to_urdf(urdf: Any, arm: Arm, base: str, tip: str, source: str) -> 
         dR = np.linalg.norm(new[:3, :3] - old[:3, :3])
         if dp > _TOL or dR > _TOL:
             notes.append(
-                f"{_jwhere(last)} origin carries frame {arm.frame_names[i]!r} "
-                f"(moved {dp:.4g} mm)"
+                f"{_jwhere(last)} origin carries frame {arm.frame_names[i]!r} (moved {dp:.4g} mm)"
             )
     for j, m in zip(movable, mods, strict=True):
         axis = np.asarray(m.axis, dtype=float)
@@ -518,9 +516,10 @@ def urdf_text(urdf: Any, original: bytes, comment: Sequence[str] = ()) -> tuple[
 
     Top-level elements yourdfpy does not model (``<transmission>``, ``<gazebo>``, ...) and the
     sub-elements of links and joints it does not write (``<mimic>``, ``<calibration>``,
-    ``<safety_controller>``, ...) are copied from the original file; the lines of ``comment`` become an XML comment at the top of
-    ``<robot>``. Returns ``(text, lost)``: ``lost`` names each element path of the original
-    that the text still lacks (with counts), and notes dropped XML comments.
+    ``<safety_controller>``, ...) are copied from the original file; the lines of ``comment``
+    become an XML comment at the top of ``<robot>``. Returns ``(text, lost)``: ``lost`` names
+    each element path of the original that the text still lacks (with counts), and notes
+    dropped XML comments.
     """
     from lxml import etree
 

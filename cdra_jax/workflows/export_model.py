@@ -142,8 +142,9 @@ def export_urdf(
         *(f"not held by a URDF, not exported: {w}" for w in held_not),
     ]
     text, lost = urdf_text(doc, original, comment)
-    back = chain_arm(read_urdf(text.encode("utf-8"), label=f"{source} (exported)"), base,
-                     tool_link, source)
+    back = chain_arm(
+        read_urdf(text.encode("utf-8"), label=f"{source} (exported)"), base, tool_link, source
+    )
     F_back = np.asarray(back.arm.frames, dtype=float)
     F = np.asarray(arm.frames, dtype=float)
     check_mm = float(np.max(np.abs(F_back[:, :3, 3] - F[:, :3, 3])))

@@ -114,9 +114,7 @@ class ImportedModel(JsonResult):
         else:
             lines.append(f"{len(arm.modules)} modules: {kinds}")
         lines.append(f"{len(arm.frame_names)} fixed frames: {', '.join(arm.frame_names)}")
-        lines.append(
-            "tool frame origin at q = 0: [" + ", ".join(f"{v:.4f}" for v in tool) + "] mm"
-        )
+        lines.append("tool frame origin at q = 0: [" + ", ".join(f"{v:.4f}" for v in tool) + "] mm")
         return "\n".join(lines)
 
     def plot(self) -> Figure:
@@ -164,6 +162,4 @@ def import_dh(
         name=name or Path(path).stem or "dh_arm",
         description=f"imported from DH table {Path(path).name} ({convention} convention)",
     )
-    return ImportedModel(
-        arm=arm, source=str(path), format="dh", details={"convention": convention}
-    )
+    return ImportedModel(arm=arm, source=str(path), format="dh", details={"convention": convention})
