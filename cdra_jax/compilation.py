@@ -166,3 +166,34 @@ def cached_filter_jit(fun: Callable) -> Any:
     same shapes reuse the compiled program (the workflows compile each solve this way: one
     compiled program starts several times faster than op-by-op dispatch)."""
     return filter_jit(fun)
+
+
+def default_cache_dir() -> str:
+    """Where the command line keeps compiled programs between runs:
+    ``$CDRA_JAX_CACHE_DIR``, else JAX's own ``$JAX_COMPILATION_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/cdra_jax/xla``, else ``~/.cache/cdra_jax/xla``."""
+    explicit = os.environ.get("CDRA_JAX_CACHE_DIR") or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if explicit:
+        return explicit
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "cdra_jax", "xla")
+
+
+def enable_persistent_cache(path: str | None = None) -> str:
+    """Keep compiled programs on disk (JAX's persistent compilation cache) so that a second run
+    with the same shapes skips XLA compilation; returns the folder (created if missing).
+
+    Every program is cached, however fast it compiled (the command line's solves compile in
+    seconds and run in milliseconds). The folder grows with every new shape (a few MB per
+    program); delete it at any time to reclaim the space. Changes JAX's global configuration:
+    call it from an
+    application (the ``cdra-jax`` command does, unless ``--no-cache``), not from library code.
+    """
+    import jax
+
+    folder = path or default_cache_dir()
+    os.makedirs(folder, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return folder

@@ -295,3 +295,20 @@ def test_model_out_and_compare(truth_sim, calibration, tmp_path, capsys):
     argv = ["validate", "--model", cal, "--data", data, "--compare", cal]
     assert cli.main([str(a) for a in argv]) == 0
     assert "compared with:" in capsys.readouterr().out
+
+
+def test_the_cli_keeps_compiled_programs_between_runs(tmp_path):
+    import os
+    import subprocess
+
+    cache = tmp_path / "xla"
+    env = {**os.environ, "CDRA_JAX_CACHE_DIR": str(cache)}
+    env.pop("CDRA_JAX_NO_CACHE", None)
+    argv = [sys.executable, "-m", "cdra_jax.cli", "simulate", "--poses", "4", "--out"]
+    subprocess.run([*argv, str(tmp_path / "a.csv")], env=env, check=True, capture_output=True)
+    entries = sorted(p.name for p in cache.iterdir())
+    assert entries  # the compiled simulation is on disk
+    off = [sys.executable, "-m", "cdra_jax.cli", "--no-cache", *argv[3:]]
+    subprocess.run([*off, str(tmp_path / "b.csv")], env=env, check=True, capture_output=True)
+    assert sorted(p.name for p in cache.iterdir()) == entries  # --no-cache: nothing added
+    assert (tmp_path / "a.csv").read_text() == (tmp_path / "b.csv").read_text()

@@ -13,6 +13,7 @@ appended to :data:`SUBCOMMANDS`.
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -57,6 +58,14 @@ def build_parser():
         "(Mustafa et al., ICRA 2008). Units: mm, rad.",
     )
     parser.add_argument("--version", action="version", version=f"cdra-jax {package_version()}")
+    parser.add_argument(
+        "--no-cache",
+        action="store_true",
+        default=bool(os.environ.get("CDRA_JAX_NO_CACHE")),
+        help="do not keep compiled programs between runs (default: kept in "
+        "$CDRA_JAX_CACHE_DIR, else ~/.cache/cdra_jax/xla, so that a second run with the same "
+        "shapes starts in a fraction of the time; CDRA_JAX_NO_CACHE=1 has the same effect)",
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in SUBCOMMANDS:
         before = set(subparsers.choices)
@@ -78,6 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import jax
     import numpy as np
 
+    from ..compilation import enable_persistent_cache
     from ..io.files import remove_temporary_files_on_sigterm
 
     jax.config.update("jax_enable_x64", True)
@@ -88,6 +98,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version, usage errors
         return int(e.code or 0) if not isinstance(e.code, str) else common.EXIT_USAGE
+    if not args.no_cache:
+        try:
+            enable_persistent_cache()
+        except OSError as e:  # an unwritable cache folder costs speed, never the run
+            print(f"warning: compilation cache off: {e}", file=sys.stderr)
     try:
         # numpy's floating-point warnings are never shown: every bad value is caught by the
         # readers and the checks, which name the file, row and column instead.
