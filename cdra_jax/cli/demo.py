@@ -14,6 +14,7 @@ import datetime
 import sys
 from pathlib import Path
 
+from ..io.files import check_output
 from . import common
 
 OUTPUT_FILES: tuple[str, ...] = (
@@ -79,6 +80,8 @@ def output_folder(out: str | None, force: bool) -> Path:
             f"--out-dir {out}: folder exists and is not empty; pass --force to overwrite the "
             f"demo's files in it ({', '.join(OUTPUT_FILES)})"
         )
+    for name in OUTPUT_FILES:  # before any work: never a folder, FIFO or device in the way
+        check_output(path / name, force, "--out-dir")
     path.mkdir(parents=True, exist_ok=True)
     return path
 

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from ..io.files import check_distinct_files, check_output
-from ..workflows.inputs import check_range
+from ..workflows.inputs import check_range, check_seed
 from . import common
 
 
@@ -45,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``diagnose``; exit code 0 (also when a mismatch is found)."""
     noise = common.noise(args)
     check_range("--folds", args.folds)
+    check_seed(args.seed, "--seed")
     if not 0 < args.alpha < 1:
         raise ValueError(f"--alpha must be a number in (0, 1), got {args.alpha}")
     check_distinct_files([("--out", args.out)], [("--data", args.data), ("--model", args.model)])

@@ -64,6 +64,7 @@ def write_file_atomic(
     path = destination(path, force)
     folder = path.parent
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    _TEMPORARY.add(tmp)
     try:
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600; give it a normal file's mode
         f: IO[Any]
@@ -83,6 +84,8 @@ def write_file_atomic(
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+    finally:
+        _TEMPORARY.discard(tmp)
     return path
 
 
@@ -128,13 +131,24 @@ class OutputNotRegularError(OSError):
     """The output exists and is not a regular file (FIFO, device, socket): never replaced."""
 
 
+_TEMPORARY: set[str] = set()
+"""Temporary files of the writes in progress (removed on ``SIGTERM``)."""
+
+
 def remove_temporary_files_on_sigterm() -> None:
-    """Turn ``SIGTERM`` into ``SystemExit(143)`` so that a write in progress removes its
-    temporary file (as ``SIGINT``'s ``KeyboardInterrupt`` does). Only from the main thread;
-    the command line installs it."""
+    """On ``SIGTERM``: remove the temporary files of the writes in progress, say so on stderr
+    and end the process at once with exit status 143, whatever it was doing (a compiled
+    computation included: no Python code of the interrupted program runs again). Only from the
+    main thread; the command line installs it. ``SIGINT`` (Ctrl-C) raises
+    ``KeyboardInterrupt`` as usual, whose unwinding removes the temporary file."""
 
     def _terminate(signum, frame):  # noqa: ARG001
-        raise SystemExit(128 + signum)
+        for tmp in list(_TEMPORARY):
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        with contextlib.suppress(OSError):
+            os.write(2, b"error: terminated (SIGTERM); no partial output file was left\n")
+        os._exit(128 + signum)
 
     signal.signal(signal.SIGTERM, _terminate)
 

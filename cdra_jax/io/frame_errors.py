@@ -120,11 +120,15 @@ def load_frame_errors(path: str | os.PathLike, arm: Arm) -> np.ndarray:
         text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise FrameErrorFileError(f"{path}: cannot read frame-error file: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise FrameErrorFileError(f"{path}: not UTF-8 text: {e.reason}") from None
     if path.suffix.lower() == ".toml":
         try:
             spec = tomllib.loads(text)
         except tomllib.TOMLDecodeError as e:
             raise FrameErrorFileError(f"{path}: not valid TOML: {e}") from None
+        except RecursionError:
+            raise FrameErrorFileError(f"{path}: not valid TOML: nested too deeply") from None
     else:
         try:
             spec = json.loads(text)
@@ -135,6 +139,8 @@ def load_frame_errors(path: str | os.PathLike, arm: Arm) -> np.ndarray:
             ) from None
         except ValueError as e:  # e.g. an integer of more than 4300 digits
             raise FrameErrorFileError(f"{path}: not valid JSON: {e}") from None
+        except RecursionError:
+            raise FrameErrorFileError(f"{path}: not valid JSON: nested too deeply") from None
     return frame_errors_from_mapping(spec, arm, str(path))
 
 

@@ -370,6 +370,21 @@ def _columns_text(arm: Arm) -> str:
     return "; ".join(parts)
 
 
+def _checked_records(reader: Iterator[list[str]], feed: _Lines, source: str):
+    """The records of ``reader``; a malformed record (``csv.Error``, e.g. a cell beyond the
+    csv module's field size limit) becomes a :class:`MeasurementFileError` at its line."""
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as e:
+            raise MeasurementFileError(
+                source, f"malformed CSV record: {e}", line=feed.record_start
+            ) from None
+        yield row
+
+
 class _Lines:
     """Feeds lines to ``csv.reader`` and remembers the first physical line of each record."""
 
@@ -434,7 +449,7 @@ def loads_measurements(
         )
     header_line = h + 1
     feed = _Lines(lines[h:], header_line)
-    reader = csv.reader(feed)
+    reader = _checked_records(csv.reader(feed), feed, source)
     header = [c.strip() for c in next(reader)]
     feed.end_record()
     ctx = RowContext(source, header_line, ())
@@ -600,12 +615,13 @@ def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured
     def err(what: str, column: str | None = None) -> MeasurementFileError:
         return ctx.error(what, column=column)
 
-    if len(header) == 1 and ";" in header[0]:
-        raise MeasurementFileError(
-            source,
-            "columns must be separated by commas; this header row uses ';'",
-            line=ctx.header_line,
-        )
+    for sep, name in ((";", "';'"), ("\t", "tabs")):
+        if len(header) == 1 and sep in header[0]:
+            raise MeasurementFileError(
+                source,
+                f"columns must be separated by commas; this header row uses {name}",
+                line=ctx.header_line,
+            )
     if POSE_COLUMN not in header:
         looks_like_data = any(_is_number(c) for c in header)
         if looks_like_data:

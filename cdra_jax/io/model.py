@@ -362,6 +362,8 @@ def load_model(path: str | os.PathLike) -> Arm:
         text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise ModelFileError(f"{path}: cannot read model file: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ModelFileError(f"{path}: not UTF-8 text: {e.reason}") from None
     return loads_model(text, source=str(path))
 
 
@@ -372,7 +374,12 @@ def loads_model(text: str, source: str = "<model>") -> Arm:
         spec = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ModelFileError(f"{source}: not valid TOML: {e}") from None
-    return arm_from_dict(spec, source)
+    except RecursionError:
+        raise ModelFileError(f"{source}: not valid TOML: nested too deeply") from None
+    try:
+        return arm_from_dict(spec, source)
+    except RecursionError:
+        raise ModelFileError(f"{source}: a value is nested too deeply") from None
 
 
 def default_arm() -> Arm:

@@ -352,6 +352,8 @@ def loads_result(text: str, source: str = "<result>") -> dict[str, Any]:
         raise ResultFileError(
             f"{source}: not valid JSON (line {e.lineno}, column {e.colno}): {e.msg}"
         ) from None
+    except (ValueError, RecursionError) as e:  # a 5000-digit integer, nesting 100000 deep
+        raise ResultFileError(f"{source}: not a result file: {type(e).__name__}") from None
     if not isinstance(d, dict):
         raise ResultFileError(f"{source}: top level: expected a JSON object")
     if d.get("format", RESULT_FORMAT) != RESULT_FORMAT:
@@ -402,6 +404,8 @@ def load_result(path: str | os.PathLike) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise ResultFileError(f"{path}: cannot read result file: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ResultFileError(f"{path}: not UTF-8 text: {e.reason}") from None
     return loads_result(text, str(path))
 
 
