@@ -1,4 +1,6 @@
 import os
+import shutil
+import tempfile
 
 # The suite compiles hundreds of small XLA programs that then run for milliseconds, so compile
 # time dominates it: build them without LLVM's optimisation passes (about 15-20 % less wall time;
@@ -12,10 +14,39 @@ for _flag in ("--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitte
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
 
+# One on-disk XLA compilation cache for the whole run, shared by the xdist workers, the modules
+# (whose in-memory caches are dropped after each one, below) and the subprocesses (notebook
+# kernels, two-device scripts), which inherit the environment: a program that another worker
+# or module compiled is loaded instead of compiled again. Made fresh for each run (by the
+# controller, before it starts the workers) and removed at its end (pytest_unconfigure); a
+# JAX_COMPILATION_CACHE_DIR of your own is used as it is and kept.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="cdra-jax-test-xla-cache-")
+    os.environ["CDRA_JAX_TEST_OWN_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+
+import gc  # noqa: E402
+
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _free_compiled_programs_after_each_module():
+    """Drop JAX's compiled programs and traces after each test module, bounding memory.
+
+    Without it, one xdist worker keeps every executable that the modules it ran have compiled
+    (peak RSS ~6 GB for the whole suite); the modules share few programs, so recompiling them
+    costs little time.
+    """
+    yield
+    if os.environ.get("CDRA_TEST_KEEP_CACHES") == "1":
+        return
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture(scope="session")
@@ -99,7 +130,199 @@ _LONG_FIRST = (
 )
 
 
+# The quick loop, `python -m pytest -q -n 2 -m "not slow"` (under a minute on two cores), skips
+# the tests marked slow: those marked in their files, and these, marked here because each costs
+# a second or more of CPU (mostly compiling solvers; measured per test on the full suite). Every
+# module keeps at least one cheap test in the quick loop. CI runs them all.
+_SLOW: dict[str, tuple[str, ...]] = {
+    "tests/test_benchmark_baselines.py": (
+        "test_baseline_calibrations_agree_with_the_paper_solver",
+    ),
+    "tests/test_calibration.py": (
+        "test_noisy_solution_is_stationary",
+        "test_metric_gradients_are_finite_at_an_exact_fit_and_exact_elsewhere",
+        "test_nan_in_measurements_raises_with_throw",
+        "test_noise_free_recovery_cdra",
+        "test_residual_gradients",
+        "test_underdetermined_gives_the_minimum_norm_answer",
+    ),
+    "tests/test_calibration_kernels.py": (
+        "test_linearise_is_the_stacked_system",
+        "test_lm_first_step_is_the_gauss_newton_step",
+        "test_lm_jacobian_is_the_derivative_of_the_residual",
+        "test_whiten_is_model_whitening",
+    ),
+    "tests/test_cli.py": (
+        "test_implausibly_large_identified_errors_warn",
+        "test_not_converged_exits_3_and_still_writes_the_result",
+        "test_simulate_cables_then_calibrate",
+        "test_simulate_then_calibrate_recovers_the_preset_errors",
+        "test_simulate_writes_csv_with_preset_errors_in_comments",
+    ),
+    "tests/test_cli_robust.py": (
+        "test_least_squares_result_has_unit_weights_and_flags",
+        "test_warning_rows_give_warning_lines_and_write_the_result",
+        "test_cauchy_flags_the_corrupted_poses_in_summary_and_json",
+        "test_reject_outliers_refits_without_the_flagged_poses",
+    ),
+    "tests/test_compilation.py": ("test_options_change_no_result_of_the_solvers",),
+    "tests/test_concealed_generator.py": (
+        "test_every_effect_at_zero_size_is_the_geometric_model",
+        "test_size_calibration_hits_the_requested_unabsorbed_rms",
+    ),
+    "tests/test_degenerate.py": (
+        "test_identical_poses_keep_six_parameters_and_name_the_other_eighteen",
+    ),
+    "tests/test_diagnosis.py": (
+        "test_uniform_length_scale_is_absorbed",
+        "test_without_noise_values_clean_recordings_give_none",
+        "test_a_richer_form_is_refitted_and_reaches_the_noise_floor",
+        "test_clean_recordings_give_none",
+        "test_cli_end_to_end",
+        "test_injected_effect_is_found_where_it_is",
+        "test_without_noise_values_the_noise_is_estimated",
+    ),
+    "tests/test_float32_and_noise_checks.py": (
+        "test_explicit_tolerances_still_apply_in_float32",
+        "test_float32_solves_agree_with_float64",
+        "test_float32_solves_stay_float32_and_converge_with_the_default_tolerances",
+        "test_float64_default_tolerance_is_the_old_one_bitwise",
+        "test_robust_rejection_of_a_failed_trial_outside_jit_reports_nonfinite",
+    ),
+    "tests/test_fuzz.py": (
+        "test_pose_selection_picks_distinct_poses_or_names_the_bad_state",
+        "test_random_arms_have_finite_kinematics_identifiability_and_round_trip",
+        "test_solvers_never_report_success_with_nan",
+        "test_sweep_rows_are_finite_when_converged",
+    ),
+    "tests/test_hostile_input.py": (
+        "test_force_onto_a_folder_is_refused",
+        "test_text_in_a_number_cell_names_file_line_and_column",
+        "test_bad_result_and_frame_error_files_name_the_file",
+        "test_force_onto_a_fifo_is_refused_and_the_fifo_stays",
+        "test_malformed_model_files_name_the_key",
+    ),
+    "tests/test_implicit_derivatives.py": (
+        "test_gradients_under_vmap_and_at_an_exact_fit",
+        "test_lm_derivative_is_that_of_the_least_squares_optimum",
+        "test_paper_solver_derivative",
+        "test_weighted_solver_derivative",
+    ),
+    "tests/test_io_measurements.py": (
+        "test_cable_length_columns_give_the_module_state",
+        "test_bad_cable_lengths_name_row_and_column",
+    ),
+    "tests/test_lie.py": (
+        "test_log_jacobians",
+        "test_rotation_angle_gradient_is_finite_at_identity",
+    ),
+    "tests/test_modules_cable_data.py": ("test_states_from_exact_and_noisy_lengths",),
+    "tests/test_modules_cables.py": (
+        "test_forward_kinematics_from_noisy_lengths_reports_the_residual",
+        "test_initial_guess_and_offsets",
+        "test_forward_kinematics_round_trip_over_the_workspace",
+        "test_forward_kinematics_under_vmap_equals_a_loop",
+        "test_prismatic_module_round_trip",
+    ),
+    "tests/test_modules_self_calibration.py": (
+        "test_recovery_with_length_noise_is_within_its_predicted_uncertainty",
+        "test_identifiability_report_names_the_gauge_freedoms",
+        "test_noise_free_recovery_of_spherical_modules",
+    ),
+    "tests/test_modules_statics.py": (
+        "test_distribution_is_the_minimum_norm_one",
+        "test_holding_tensions_are_in_equilibrium_and_above_the_floor",
+        "test_infeasible_load_is_reported_not_raised",
+    ),
+    "tests/test_modules_tension.py": (
+        "test_arm_closure_gives_the_verdicts_of_tension_closure_and_hull_margin",
+        "test_closure_of_random_planar_and_spatial_matrices",
+        "test_closure_verdicts_and_margins_agree_with_scipy",
+        "test_sample_poses_conditions_only_the_modules_with_cables",
+        "test_sampler_raises_when_too_few_states_are_feasible",
+        "test_sampler_returns_only_feasible_states_within_the_limits",
+    ),
+    "tests/test_physics.py": (
+        "test_vocabulary_is_the_design_table",
+        "test_zero_parameters_give_the_geometric_model_exactly",
+        "test_backlash_and_drift_follow_their_auxiliaries",
+        "test_bending_force_part_is_the_textbook_cantilever",
+        "test_features_shapes_and_jacobians_finite",
+    ),
+    "tests/test_plausibility.py": (
+        "test_no_typo_warning_on_clean_simulated_files",
+        "test_a_400_mm_typo_in_one_of_30_rows_is_named",
+    ),
+    "tests/test_pose_selection.py": (
+        "test_exchange_reaches_a_swap_local_optimum",
+        "test_tool_positions_used_for_whitening",
+        "test_blocks_and_basis",
+        "test_i_opt_reaches_a_swap_local_optimum_of_the_predicted_heldout_error",
+        "test_o1_index_and_sampler",
+        "test_plan_poses_cli",
+        "test_selected_poses_predict_better_than_random",
+        "test_unbounded_prediction_where_the_pool_identifies_too_little",
+    ),
+    "tests/test_reproduction.py": (
+        "test_table_one_differences_lie_in_the_null_space",
+        "test_convergence_within_six_iterations",
+        "test_demo_writes_tables_and_figures",
+        "test_noise_study_monotone_ish",
+        "test_pose_repetition_gives_the_same_calibration",
+        "test_rounding_bound_holds_for_random_roundings",
+        "test_table_one_base_and_tool_exact",
+    ),
+    "tests/test_robust.py": (
+        "test_huber_solution_solves_the_reweighted_normal_equations",
+        "test_noise_free_data_flag_nothing_and_recover_the_errors",
+        "test_cauchy_without_noise_model_estimates_the_scale_by_mad",
+        "test_huber_flags_exactly_the_corrupted_poses",
+        "test_huber_keeps_the_accuracy_of_the_clean_fit",
+        "test_least_squares_with_too_optimistic_noise_flags_most_poses_and_says_why",
+        "test_reject_outliers_keeps_the_robust_fit_when_too_few_poses_remain",
+        "test_reject_outliers_refits_least_squares_on_the_unflagged_poses",
+    ),
+    "tests/test_sweeps.py": (
+        "test_chunking_does_not_change_trials",
+        "test_run_sweep_accepts_numpy_integers_and_noise_models",
+        "test_csv_round_trip_and_errors",
+        "test_every_pose_a_sweep_draws_has_tension_closure",
+        "test_table_layout",
+    ),
+    "tests/test_uncertainty.py": (
+        "test_covariance_is_pinv_of_whitened_information",
+        "test_pose_covariance_matches_autodiff",
+        "test_predicted_accuracy_gradients",
+        "test_prediction_unbounded_where_the_poses_leave_directions_unidentified",
+    ),
+    "tests/test_workflows.py": (
+        "test_model_out_and_compare",
+        "test_the_cli_keeps_compiled_programs_between_runs",
+        "test_validate_cli_matches_the_function",
+        "test_a_fit_worse_than_nominal_is_marked_untrusted",
+        "test_an_interrupted_sweep_resumes_from_its_finished_chunks",
+        "test_calibrate_cli_writes_the_figure",
+        "test_calibrate_result_object",
+        "test_calibrate_solver_names_are_those_of_sweep",
+        "test_simulate_result_object",
+        "test_sweep_prints_progress_lines_when_stderr_is_not_a_terminal",
+        "test_validate_refuses_a_plan_without_measured_poses",
+        "test_validate_reports_the_gain_on_held_out_poses",
+    ),
+}
+
+
+def _mark_slow(items):
+    for item in items:
+        path, _, name = item.nodeid.partition("::")
+        if name.split("[")[0] in _SLOW.get(path, ()):
+            item.add_marker(pytest.mark.slow)
+
+
+@pytest.hookimpl(tryfirst=True)  # marks before the -m "not slow" deselection
 def pytest_collection_modifyitems(config, items):
+    _mark_slow(items)
+
     def rank(item):
         for i, prefix in enumerate(_LONG_FIRST):
             if item.nodeid.startswith(prefix):
@@ -107,3 +330,9 @@ def pytest_collection_modifyitems(config, items):
         return len(_LONG_FIRST)
 
     items.sort(key=rank)  # stable: the order within each group is kept
+
+
+def pytest_unconfigure(config):
+    own = os.environ.get("CDRA_JAX_TEST_OWN_CACHE")
+    if own and not hasattr(config, "workerinput"):  # the controller (or a run without xdist)
+        shutil.rmtree(own, ignore_errors=True)

@@ -943,8 +943,10 @@ def test_truncated_files_are_refused_with_the_place(base, capsys, data):
         assert cut < len(base.comments) or f"line {base.H} (header row)" in line, line
     elif rc == cli.EXIT_ERROR:
         assert f"{path}, line {base.H + M}" in line, line
-    else:  # cut inside the last number: still a number
-        assert rc == 0 and text[cut:].count(",") == 0
+    else:  # cut inside the last number: still a number, maybe far from the true one
+        assert text[cut:].count(",") == 0
+        # a changed orientation can pull the unweighted fit worse than nominal: said, exit 4
+        assert rc in (0, cli.EXIT_UNTRUSTED), (rc, line)
 
 
 SPEC_PATHS = [

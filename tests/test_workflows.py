@@ -152,7 +152,16 @@ def test_sweep_prints_progress_lines_when_stderr_is_not_a_terminal(monkeypatch):
 
 def test_every_subcommand_is_a_module_with_register_and_run():
     names = [m.__name__.rsplit(".", 1)[-1] for m in cli.SUBCOMMANDS]
-    assert names == ["demo", "simulate", "calibrate", "validate", "diagnose", "sweep", "plan_poses"]
+    assert names[:7] == [
+        "demo",
+        "simulate",
+        "calibrate",
+        "validate",
+        "diagnose",
+        "sweep",
+        "plan_poses",
+    ]
+    assert {"import_model", "export_model"} <= set(names)
     for m in cli.SUBCOMMANDS:
         assert callable(m.register) and callable(m.run)
     help_text = cli.build_parser().format_help()

@@ -80,8 +80,9 @@ def output_folder(out: str | None, force: bool) -> Path:
             f"--out-dir {out}: folder exists and is not empty; pass --force to overwrite the "
             f"demo's files in it ({', '.join(OUTPUT_FILES)})"
         )
-    for name in OUTPUT_FILES:  # before any work: never a folder, FIFO or device in the way
-        check_output(path / name, force, "--out-dir")
+    if path.is_dir():  # before any work: never a folder, FIFO or device in the way
+        for name in OUTPUT_FILES:
+            check_output(path / name, force, "--out-dir")
     path.mkdir(parents=True, exist_ok=True)
     return path
 
