@@ -34,19 +34,35 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 
+_RSS_LIMIT_BYTES = 1_200_000_000
+"""A worker drops its compiled programs after a module once its resident memory exceeds this."""
+
+
+def _resident_bytes() -> int:
+    """This process's resident memory now (Linux ``/proc``; 0 where it cannot be read)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _free_compiled_programs_after_each_module():
-    """Drop JAX's compiled programs and traces after each test module, bounding memory.
+    """Drop JAX's compiled programs and traces after a test module once the worker holds more
+    than :data:`_RSS_LIMIT_BYTES`, bounding memory.
 
     Without it, one xdist worker keeps every executable that the modules it ran have compiled
-    (peak RSS ~6 GB for the whole suite); the modules share few programs, so recompiling them
-    costs little time.
+    (peak RSS ~6 GB for the whole suite). Dropping them only when memory is high keeps the
+    programs that the next modules share (tracing them again is Python work, which coverage
+    makes slower still); the on-disk cache above makes the recompilation cheap.
     """
     yield
     if os.environ.get("CDRA_TEST_KEEP_CACHES") == "1":
         return
-    jax.clear_caches()
-    gc.collect()
+    if _resident_bytes() > _RSS_LIMIT_BYTES:
+        jax.clear_caches()
+        gc.collect()
 
 
 @pytest.fixture(scope="session")
