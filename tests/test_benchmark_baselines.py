@@ -113,18 +113,20 @@ def test_throughput_scaling_mode_generates_in_blocks_and_reports(cdra, capsys, m
     """The block-wise problem generator (used for N = 10^6) gives the trials of one big batch,
     and the scaling sweep reports a rate and a compile time per row."""
     throughput = _load("throughput")
-    whole = throughput.make_problems(cdra, 5, 4, None, seed=3)
-    monkeypatch.setattr(throughput, "_GEN_BLOCK", 2)  # blocks of 2, the last one padded
-    blocks = throughput.make_problems(cdra, 5, 4, None, seed=3)
+    # The shapes of the script test's problems and solver (N = 6, m = 15): the programs come
+    # from the compilation cache.
+    whole = throughput.make_problems(cdra, 6, 15, None, seed=3)
+    monkeypatch.setattr(throughput, "_GEN_BLOCK", 4)  # blocks of 4, the last one padded
+    blocks = throughput.make_problems(cdra, 6, 15, None, seed=3)
     for a, b in zip(whole, blocks, strict=True):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
     args = ["--scaling", "--solvers", "paper", "--repeats", "1", "--json"]
-    args += ["--scaling-trials", "3", "--scaling-poses", "5", "--scaling-n", "3"]
+    args += ["--scaling-trials", "6", "--scaling-poses", "15", "--scaling-n", "6"]
     throughput.main(args)
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     (row_n,), (row_m,) = report["by_trials"], report["by_poses"]
-    assert (row_n["N"], row_m["m"]) == (3, 5)
+    assert (row_n["N"], row_m["m"]) == (6, 15)
     for row in (row_n, row_m):
         assert row["paper"] > 0 and row["paper_compile_s"] > 0 and row["paper_repeats"] == 1
     assert len(report["machine"]["load_average"]) == 3

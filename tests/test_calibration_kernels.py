@@ -45,10 +45,15 @@ NOISE = NoiseModel(position_mm=0.05, rotation_rad=1e-3)
 
 
 @eqx.filter_jit
-def _problem(arm, seed, m=15, noise=None):
+def _problem_jit(arm, seed, m, noise):
     q, T, _, _, X = simulation.simulate_trial(jax.random.PRNGKey(seed), arm, m, noise=noise)
     P = jnp.moveaxis(module_poses(arm, q)[..., :3, :], 0, -1)
     return q, T, P, kernels.pose_stack(T), X
+
+
+def _problem(arm, seed, m=15, noise=None):
+    # the seed as an array: one compiled generator for all seeds (a Python int is static)
+    return _problem_jit(arm, jnp.asarray(seed), m, noise)
 
 
 @pytest.mark.parametrize("noise", [None, NOISE], ids=["paper", "weighted"])
@@ -218,6 +223,28 @@ def _smallest_pivot(arm, q, T):
 
 
 @eqx.filter_jit
+def _trials7(arm):
+    keys = jax.random.split(jax.random.PRNGKey(11), 48)
+    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, arm, 7))(keys)
+    return q, T
+
+
+@pytest.fixture(scope="module")
+def trials7(cdra):
+    """48 sets of 7 poses (42 rows, the fewest for which the fast step is tried), shared by the
+    fast-path tests, with the smallest pivots of their normal equations at the nominal model."""
+    q, T = _trials7(cdra)
+    return q, T, np.asarray(_smallest_pivot(cdra, q, T))
+
+
+@pytest.fixture(scope="module")
+def exact7(cdra, trials7):
+    """The SVD-step paper solves of ``trials7`` (an explicit rcond; the default chunk size)."""
+    q, T, _ = trials7
+    return _batch(cdra, q, T, True)
+
+
+@eqx.filter_jit
 def _batch(arm, q, T, exact):
     # An explicit rcond (here the default value) selects the SVD step.
     rcond = default_rcond(jnp.float64) if exact else None
@@ -226,21 +253,20 @@ def _batch(arm, q, T, exact):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("chunk_size", [128, 5])
-def test_fast_paper_solver_is_the_svd_solver(cdra, chunk_size, monkeypatch):
+def test_fast_paper_solver_is_the_svd_solver(cdra, trials7, exact7, chunk_size, monkeypatch):
     """7 poses (42 rows, the fewest for which the fast step is tried): some sets have an
     identifiable direction that the normal equations do not resolve (pivot below
     RESOLVED_PIVOT, or dropped): those are redone with SVD steps, in one chunk, or (chunks of
     5) gathered from several chunks into chunks of their own."""
+    q, T, smallest = trials7
     monkeypatch.setattr(gauss_newton, "CHUNK_SIZE", chunk_size)
-    keys = jax.random.split(jax.random.PRNGKey(11), 48)
-    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 7))(keys)
     # Both paths are exercised: some sets are resolved at the nominal model, some are not.
-    smallest = _smallest_pivot(cdra, q, T)
-    resolved = np.asarray(smallest) >= RESOLVED_PIVOT
+    resolved = smallest >= RESOLVED_PIVOT
     assert 0 < resolved.sum() < resolved.size
-    # Fresh jits: the chunk size is read when the solver is traced.
+    # A fresh jit: the chunk size is read when the solver is traced. The reference is the SVD
+    # solver (an explicit rcond), compiled once for the module.
     fast = eqx.filter_jit(lambda *a: _batch.__wrapped__(*a))(cdra, q, T, False)
-    exact = eqx.filter_jit(lambda *a: _batch.__wrapped__(*a))(cdra, q, T, True)
+    exact = exact7
     np.testing.assert_array_equal(fast.iterations, exact.iterations)
     np.testing.assert_array_equal(fast.rank, exact.rank)
     np.testing.assert_array_equal(fast.result._value, exact.result._value)
@@ -250,7 +276,7 @@ def test_fast_paper_solver_is_the_svd_solver(cdra, chunk_size, monkeypatch):
 
 
 @pytest.mark.slow
-def test_lm_fast_basis_is_redone_where_unresolved(cdra, monkeypatch):
+def test_lm_fast_basis_is_redone_where_unresolved(cdra, trials7, monkeypatch):
     """LM's identifiable basis from the normal equations (``whitening_basis_normal``), and the
     SVD basis for the trials (7 poses: some sets) whose pivots are not resolved or whose rank
     differs, gathered from chunks of 5: the results are those of the SVD basis (an explicit
@@ -258,9 +284,7 @@ def test_lm_fast_basis_is_redone_where_unresolved(cdra, monkeypatch):
     from cdra_jax.calibration import levenberg_marquardt
 
     monkeypatch.setattr(levenberg_marquardt, "CHUNK_SIZE", 5)
-    keys = jax.random.split(jax.random.PRNGKey(11), 48)
-    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 7))(keys)
-    smallest = np.asarray(_smallest_pivot(cdra, q, T))
+    q, T, smallest = trials7
     assert 0 < (smallest >= RESOLVED_PIVOT).sum() < smallest.size
 
     def batch(rcond):

@@ -89,7 +89,7 @@ def test_options_change_no_result_of_the_solvers():
     emitters, so the default ones are asked for explicitly."""
     arm = cdra_jax.default_arm()
     keys = jax.random.split(jax.random.key(3), 6)
-    q, T, *_ = jax.vmap(lambda k: simulation.simulate_trial(k, arm, 8))(keys)
+    q, T, *_ = jax.jit(jax.vmap(lambda k: simulation.simulate_trial(k, arm, 8)))(keys)
 
     def solve(qq, TT):
         return (

@@ -22,7 +22,9 @@ M = 8
 
 @pytest.fixture(scope="module")
 def problem():
-    q, T, q_ver, _, _ = simulate_trial(jax.random.PRNGKey(3), ARM, M, noise=NOISE)
+    # jitted: one compilation instead of one per primitive (eager)
+    simulate = jax.jit(lambda k: simulate_trial(k, ARM, M, noise=NOISE))
+    q, T, q_ver, _, _ = simulate(jax.random.PRNGKey(3))
     return q, T, q_ver[:3]
 
 
@@ -65,21 +67,24 @@ def test_paper_solver_derivative(problem):
         return _identifiable(cj.calibrate_paper(ARM.with_frames(frames0), q, T), q_ver)
 
     g = _along(f, q, T, dq, xi)
-    at = jax.jit(lambda h: jax.jvp(g, (h,), (1.0,)))  # the value and forward derivative at h
-    value, forward = at(0.0)
+
+    # One compiled forward program for both directions: along the data (h) and along the
+    # nominal frames (F), the tangents as arguments.
+    @jax.jit
+    def at(h, dh, dF):
+        return jax.jvp(
+            lambda h, F: _along(lambda q, T: f(q, T, F), q, T, dq, xi)(h), (h, ARM.frames), (dh, dF)
+        )
+
+    zeros, ones = jnp.zeros_like(ARM.frames), jnp.ones_like(ARM.frames)
+    value, forward = at(0.0, 1.0, zeros)  # the value and forward derivative at h
     h = 1e-4
-    _assert_close(forward, (at(h)[0] - at(-h)[0]) / (2 * h))
+    _assert_close(forward, (at(h, 1.0, zeros)[0] - at(-h, 1.0, zeros)[0]) / (2 * h))
     assert np.abs(forward).max() > 1e-2  # the data do move the solution
 
     u = np.random.default_rng(1).normal(size=value.shape)
-
-    @jax.jit
-    def reverse_and_nominal():
-        pullback = jax.vjp(g, 0.0)[1]
-        ones = jnp.ones_like(ARM.frames)
-        return pullback(jnp.asarray(u))[0], jax.jvp(lambda F: f(q, T, F), (ARM.frames,), (ones,))[1]
-
-    reverse, d_nominal = reverse_and_nominal()
+    reverse = jax.jit(lambda u: jax.vjp(g, 0.0)[1](u)[0])(jnp.asarray(u))
+    d_nominal = at(0.0, 0.0, ones)[1]
     _assert_close(reverse, u @ forward, rtol=1e-8)
     n_tool = 3 * q_ver.shape[0]
     assert np.abs(d_nominal[:n_tool]).max() == 0  # predictions: independent of the start
@@ -158,7 +163,8 @@ def test_lm_derivative_is_that_of_the_least_squares_optimum(problem):
 
 def test_gradients_under_vmap_and_at_an_exact_fit():
     keys = jax.random.split(jax.random.PRNGKey(7), 3)
-    q, T, *_ = jax.vmap(lambda k: simulate_trial(k, ARM, M))(keys)  # noise-free: exact fits
+    # noise-free: exact fits
+    q, T, *_ = jax.jit(jax.vmap(lambda k: simulate_trial(k, ARM, M)))(keys)
 
     def base_and_cost(T, q):
         sol = cj.calibrate_paper(ARM, q, T, throw=False)

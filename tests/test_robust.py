@@ -39,6 +39,7 @@ from cdra_jax.uncertainty import analyze_uncertainty, whitened_jacobian
 NOISE_ARR = NoiseModel(jnp.asarray(NOISE.position_mm), jnp.asarray(NOISE.rotation_rad))
 robust = eqx.filter_jit(calibrate_robust)
 paper = eqx.filter_jit(calibrate_paper)
+tool_pose_jit = eqx.filter_jit(tool_pose)
 
 
 # --------------------------------------------------------------------------- losses
@@ -341,8 +342,8 @@ def test_reject_outliers_refits_least_squares_on_the_unflagged_poses(seed):
     # same tool poses (frames differ along the two unidentifiable directions: other starts)
     for q in (p.q, p.q_ver):
         np.testing.assert_allclose(
-            np.asarray(tool_pose(p.arm.with_frames(r.frames), q)),
-            np.asarray(tool_pose(p.arm.with_frames(oracle.frames), q)),
+            np.asarray(tool_pose_jit(p.arm.with_frames(r.frames), q)),
+            np.asarray(tool_pose_jit(p.arm.with_frames(oracle.frames), q)),
             atol=1e-9,
         )
     assert int(r.solution.iterations) == int(r.rounds) + 2 and int(r.rounds) == int(plain.rounds)

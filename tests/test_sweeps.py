@@ -4,6 +4,7 @@ All sweeps here share one cell shape (m = 5, solver "weighted", chunk 4, 10 held
 so the vmapped trial function is compiled once per process.
 """
 
+import functools
 import importlib.util
 import textwrap
 
@@ -95,11 +96,17 @@ def test_trial_matches_direct_computation(cdra, table):
     """One row against simulate_trial + calibrate_paper run directly with trial_key."""
     noise = NoiseModel(*LEVELS[1])
     i = _rows(table)[(LEVELS[1][0], 2)]
-    q, T, qv, Tv, X = simulate_trial(trial_key(7, 5, 2), cdra, 5, noise=noise, m_verify=10)
-    sol = jax.jit(lambda q, T: calibrate_paper(cdra, q, T, noise, throw=False))(q, T)
-    model = tool_pose(cdra.with_frames(sol.frames), qv)
-    dp_h, dR_h = deviation_metrics(tool_pose(apply_frame_errors(cdra, X), qv), model)
-    dp_v, _ = deviation_metrics(Tv, model)
+
+    @jax.jit  # one compiled program, not one per eager primitive
+    def direct(key):
+        q, T, qv, Tv, X = simulate_trial(key, cdra, 5, noise=noise, m_verify=10)
+        sol = calibrate_paper(cdra, q, T, noise, throw=False)
+        model = tool_pose(cdra.with_frames(sol.frames), qv)
+        dp_h, dR_h = deviation_metrics(tool_pose(apply_frame_errors(cdra, X), qv), model)
+        dp_v, _ = deviation_metrics(Tv, model)
+        return sol, dp_h, dR_h, dp_v
+
+    sol, dp_h, dR_h, dp_v = direct(trial_key(7, 5, 2))
     assert int(sol.iterations) == table["iterations"][i]
     np.testing.assert_allclose(
         [sol.final_delta_p, sol.final_delta_R, dp_h, dR_h, dp_v],
@@ -120,11 +127,11 @@ def test_every_pose_a_sweep_draws_has_tension_closure(cdra, table, monkeypatch):
         return out
 
     monkeypatch.setattr(sweeps, "simulate_trial", recording)
-    sweeps._batched_trials.cache_clear()  # trace the cell again, with the recording
-    try:
-        recorded = run_sweep(cdra, LEVELS, [5], trials=3, **CELL)
-    finally:
-        sweeps._batched_trials.cache_clear()
+    # trace the cell again, with the recording, in a cache of its own: the original cache (the
+    # cell without the recording, traced for the fixture) comes back with monkeypatch's undo
+    fresh = functools.lru_cache(maxsize=32)(sweeps._batched_trials.__wrapped__)
+    monkeypatch.setattr(sweeps, "_batched_trials", fresh)
+    recorded = run_sweep(cdra, LEVELS, [5], trials=3, **CELL)
     _assert_same_trials(table, recorded)
     q = np.concatenate([x.reshape(-1, cdra.dof) for x in drawn])
     # 2 levels x 3 trials (padded to 2 chunks of 4) x (5 calibration + 10 held-out) states
