@@ -13,6 +13,7 @@ import argparse
 import sys
 
 from ..io.files import check_distinct_files, check_output
+from ..workflows.calibrate import check_solver
 from ..workflows.inputs import check_range
 from . import common
 
@@ -83,11 +84,8 @@ def run(args: argparse.Namespace) -> int:
             "--reject-outliers needs a robust loss to flag the outliers: add --loss huber or "
             "--loss cauchy"
         )
-    if args.solver == "weighted" and noise is None:
-        raise ValueError(
-            "--solver weighted whitens the residual by the measuring device's noise: give "
-            "--noise-pos and --noise-rot"
-        )
+    if args.solver is not None:
+        check_solver(args.solver, noise, "--solver")
     check_distinct_files(
         [("--out", args.out), ("--model-out", args.model_out), ("--plot", args.plot)],
         [("--data", args.data), ("--model", args.model)],

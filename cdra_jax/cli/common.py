@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOT_CONVERGED = 0, 1, 2, 3
 """Exit codes: success; bad input or a file problem (one ``error: ...`` line on stderr); wrong
@@ -50,12 +49,6 @@ def noise(args: argparse.Namespace):
     from ..workflows import noise_model
 
     return noise_model(args.noise_pos, args.noise_rot, flags=("--noise-pos", "--noise-rot"))
-
-
-def progress_stream_is_log() -> bool:
-    """True when stdout is not a terminal (a log file or a pipe): subcommands then print plain
-    progress lines instead of redrawing a bar."""
-    return not sys.stdout.isatty()
 
 
 def wrote(path: str | os.PathLike) -> str:
