@@ -17,6 +17,7 @@ states concatenated in chain order, spherical modules contributing their rotatio
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Literal
 
@@ -189,6 +190,30 @@ def _unit(axis: ArrayLike, name: str) -> Array:
     return jnp.asarray(a / n)
 
 
+@dataclasses.dataclass(frozen=True)
+class Marker:
+    """A measured point on the tool (a laser-tracker reflector, a motion-capture marker).
+
+    Attributes:
+        name: the marker's name; its measurement columns are ``measured.<name>.x/y/z``.
+        xyz: position in the tool frame (the frame after the last fixed transform), mm.
+        calibrate: whether the position is only roughly known and is identified with the
+            frames (``True``), or known (``False``, the default).
+    """
+
+    name: str
+    xyz: tuple[float, float, float]
+    calibrate: bool = False
+
+    def __post_init__(self) -> None:
+        xyz = tuple(float(v) for v in self.xyz)
+        if len(xyz) != 3 or not all(np.isfinite(xyz)):
+            raise ValueError(
+                f"marker {self.name!r}: xyz must be 3 finite numbers (mm), got {self.xyz!r}"
+            )
+        object.__setattr__(self, "xyz", xyz)
+
+
 class Arm(eqx.Module):
     """A modular arm: ``frames[0] M_1 frames[1] ... M_K frames[K]`` (Eq. 1).
 
@@ -198,6 +223,7 @@ class Arm(eqx.Module):
         frame_names: names of the fixed transforms (``base``, ``upper_arm``, ...).
         name, description: free text.
         gravity: gravity vector in the world frame, m/s^2.
+        markers: measured points on the tool (:class:`Marker`), in the order of the model file.
     """
 
     frames: Array
@@ -206,6 +232,7 @@ class Arm(eqx.Module):
     name: str = eqx.field(static=True, default="arm")
     description: str = eqx.field(static=True, default="")
     gravity: Array = eqx.field(default_factory=lambda: jnp.array([0.0, 0.0, -9.81]))
+    markers: tuple[Marker, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self) -> None:
         k = len(self.modules)
@@ -222,6 +249,22 @@ class Arm(eqx.Module):
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"arm {self.name!r}: frame and module names must be unique: {dup}")
+        marker_names = [m.name for m in self.markers]
+        dup = sorted({n for n in marker_names if marker_names.count(n) > 1})
+        if dup:
+            raise ValueError(f"arm {self.name!r}: marker names must be unique: {dup}")
+
+    def marker(self, name: str) -> Marker:
+        """The marker called ``name`` (``ValueError`` naming the declared ones otherwise)."""
+        for m in self.markers:
+            if m.name == name:
+                return m
+        known = ", ".join(m.name for m in self.markers) or "none"
+        raise ValueError(f"arm {self.name!r} has no marker {name!r}; markers: {known}")
+
+    def with_markers(self, markers: Sequence[Marker]) -> Arm:
+        """The same arm with other markers (e.g. calibrated positions)."""
+        return dataclasses.replace(self, markers=tuple(markers))
 
     @property
     def dof(self) -> int:

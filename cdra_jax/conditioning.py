@@ -125,6 +125,19 @@ def conditioning(
             f"{arm.state_names}, got {q.shape}"
         )
     D = stacked_jacobian(arm, q, measured, noise)
+    return conditioning_from_jacobian(D, arm.param_names, rcond=rcond, threshold=threshold)
+
+
+def conditioning_from_jacobian(
+    D: np.ndarray,
+    names: tuple[str, ...],
+    *,
+    rcond: float | None = None,
+    threshold: float = CONDITION_WARNING,
+) -> ConditioningReport:
+    """:func:`conditioning` of any stacked (whitened) Jacobian ``D (rows, n)`` whose columns
+    are the parameters ``names`` (full poses, points, markers)."""
+    D = np.asarray(D, dtype=float)
     if not np.all(np.isfinite(D)):
         raise ValueError("the stacked Jacobian is not finite (NaN or inf in the inputs)")
     cond, rank, s, Vt, scale = scaled_svd(D, rcond)
@@ -135,7 +148,6 @@ def conditioning(
         for d in dirs:  # sign: largest coefficient positive
             if d[np.argmax(np.abs(d))] < 0:
                 d *= -1.0
-    names = arm.param_names
     text = tuple(format_combination(d, names, tol=_DROP * float(np.max(np.abs(d)))) for d in dirs)
     return ConditioningReport(
         condition_number=cond,

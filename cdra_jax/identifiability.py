@@ -4,8 +4,8 @@ From the nominal model and the module states of a pose set, the stacked Jacobian
 Eq. 9 (optionally whitened by a :class:`~cdra_jax.calibration.NoiseModel`) is decomposed by SVD.
 Its numerical rank is the number of identifiable parameter combinations; the right singular
 vectors with (numerically) zero singular values are the unidentifiable directions, reported as
-named parameter combinations such as ``0.707 upper_arm.vy - 0.707 forearm.vy``. For the paper's
-CDRA the rank is 22 of 24: a rotation about the elbow axis and a translation along it can be
+named parameter combinations such as ``0.707 mm upper_arm.vy - 0.707 mm forearm.vy``. For the
+paper's CDRA the rank is 22 of 24: a rotation about the elbow axis and a translation along it can be
 moved between ``upper_arm`` and ``forearm`` without changing any tool pose.
 
 Readable directions. Parameters mix units (mm and rad), so the unidentifiable subspace is
@@ -17,11 +17,11 @@ reported in two forms:
   is zero on the anchors of the others, which keeps it sparse. A rotational direction is scaled
   so that its *rotation part has unit norm*; its translation coefficients are then the
   lever-arm translations in mm per rad that must accompany the rotation, e.g. for the CDRA
-  ``0.707 upper_arm.wy - 0.707 forearm.wy - 212 upper_arm.vx``: rotate the upper arm frame by
-  +a and the forearm frame by -a about the elbow axis (y), and shift the upper arm frame by
+  ``0.707 rad upper_arm.wy - 0.707 rad forearm.wy - 212 mm upper_arm.vx``: rotate the upper arm
+  frame by +a and the forearm frame by -a about the elbow axis (y), and shift the upper arm frame by
   -300 a mm along x, since the elbow axis sits 300 mm from its origin. These lever arms are
   orthogonal to every translation-only direction. A translation-only direction has unit norm
-  (mm), e.g. ``0.707 upper_arm.vy - 0.707 forearm.vy``. Directions are not mutually orthogonal
+  (mm), e.g. ``0.707 mm upper_arm.vy - 0.707 mm forearm.vy``. Directions are not mutually orthogonal
   in general (for the CDRA they are). The first sizeable coefficient in parameter order is
   positive.
 * ``null_space``: an orthonormal basis (Euclidean in the mixed units, as the solvers'
@@ -62,7 +62,7 @@ class IdentifiabilityReport:
         null_space: ``(n_params - rank, n_params)`` orthonormal basis of the unidentifiable
             subspace (rows), in the order of ``directions``.
         unidentifiable: ``directions`` as text, e.g.
-            ``"0.707 upper_arm.vy - 0.707 forearm.vy"`` (see the module docstring).
+            ``"0.707 mm upper_arm.vy - 0.707 mm forearm.vy"`` (see the module docstring).
         param_names: names of the parameters, in the order of the columns.
         rcond: the relative singular-value cut-off used.
         warnings: plain-text warnings (few poses, rank deficiency, modules that never move).
@@ -150,8 +150,12 @@ def _is_rotation(name: str) -> bool:
 
 
 def format_combination(coeffs: np.ndarray, names: tuple[str, ...], tol: float = 1e-9) -> str:
-    """``"0.707 upper_arm.wy - 0.707 forearm.wy - 212 upper_arm.vx"`` from coefficients.
+    """``"0.707 rad upper_arm.wy - 0.707 rad forearm.wy - 212 mm upper_arm.vx"``.
 
+    Each coefficient carries the unit of its parameter (``rad`` for the rotation components
+    ``w*``, ``mm`` for translations and marker positions): the direction is the simultaneous
+    change of the listed parameters by these amounts (per unit of the direction: a rotational
+    direction has a unit-norm rotation part, a translation-only one unit norm in mm).
     Rotation parameters come first, then translations; each group by decreasing magnitude
     (ties in parameter order); coefficients below ``tol`` are left out.
     """
@@ -164,7 +168,7 @@ def format_combination(coeffs: np.ndarray, names: tuple[str, ...], tol: float = 
         c = coeffs[i]
         if abs(c) < tol:
             continue
-        mag = f"{abs(c):.3g}"
+        mag = f"{abs(c):.3g} {'rad' if _is_rotation(names[i]) else 'mm'}"
         if not parts:
             parts.append(("-" if c < 0 else "") + f"{mag} {names[i]}")
         else:
@@ -348,17 +352,15 @@ def analyze(
             "Pass allow_underdetermined=True to analyse an underdetermined pose set."
         )
     D = stacked_jacobian(arm, q, measured, noise)
-    n = D.shape[1]
-    rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
-    _, s, Vt = np.linalg.svd(D, full_matrices=True)
-    s_full = np.zeros(n)
-    s_full[: s.size] = s
-    keep = s_full > rcond * s_full[0] if s_full[0] > 0 else np.zeros(n, bool)
-    rank = int(keep.sum())
-    names = arm.param_names
-    directions, null = readable_directions(Vt[rank:].T, names)
-    text = tuple(format_combination(v, names) for v in directions)
-    cond = scaled_svd(D, rcond).condition_number
+    warns = pose_set_warnings(arm, q)
+    return report_from_jacobian(D, arm.param_names, m, rcond=rcond, warnings=warns)
+
+
+def pose_set_warnings(arm: Arm, q: ArrayLike) -> list[str]:
+    """Warnings about a pose set itself: fewer poses than the paper's bound, modules that never
+    move."""
+    q = np.asarray(q, dtype=float)
+    m = q.shape[0]
     warns = []
     if m < MIN_POSES:
         warns.append(f"only {m} poses: fewer than the paper's lower bound of {MIN_POSES}")
@@ -368,11 +370,41 @@ def analyze(
                 f"module {mod.name!r} never moves in this pose set (constant state): the fixed "
                 "frames on either side of it cannot be told apart"
             )
+    return warns
+
+
+def report_from_jacobian(
+    D: np.ndarray,
+    names: tuple[str, ...],
+    n_poses: int,
+    *,
+    rcond: float | None = None,
+    warnings: list[str] | tuple[str, ...] = (),
+) -> IdentifiabilityReport:
+    """The identifiability of the parameters ``names`` (the columns) from a stacked, whitened
+    Jacobian ``D (rows, n)`` of any residual: full poses (Eq. 9), points, markers.
+
+    Frame parameters are ``<frame>.<vx..wz>``; marker positions ``<marker>.x/y/z`` (mm) are
+    translations."""
+    D = np.asarray(D, dtype=float)
+    n = D.shape[1]
+    rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
+    _, s, Vt = np.linalg.svd(D, full_matrices=True)
+    s_full = np.zeros(n)
+    s_full[: s.size] = s
+    keep = s_full > rcond * s_full[0] if s_full[0] > 0 else np.zeros(n, bool)
+    rank = int(keep.sum())
+    directions, null = readable_directions(Vt[rank:].T, names)
+    text = tuple(format_combination(v, names) for v in directions)
+    cond = scaled_svd(D, rcond).condition_number
+    warns = list(warnings)
     if rank < n:
         warns.append(
-            f"{n - rank} parameter combination(s) cannot be identified from tool poses; the "
-            "solvers return the minimum-norm answer, which leaves them at their nominal values"
+            f"{n - rank} parameter combination(s) cannot be identified from these measurements; "
+            "the calibration keeps the nominal model along them (the gauge: the identified "
+            "correction has no component along these directions of the nominal model)"
         )
+    m = n_poses
     return IdentifiabilityReport(
         rank=rank,
         n_params=n,

@@ -380,9 +380,14 @@ def _check_measurements(text):
         assert str(e).startswith("d.csv")
         return None
     assert np.all(np.isfinite(meas.q)) and meas.q.shape == (meas.m, ARM.dof)
-    assert meas.measured is not None
-    for T in meas.measured:
-        assert rigid_transform_problem(T) is None
+    assert meas.has_measurements
+    if meas.full_poses is not None:
+        for T in meas.full_poses[meas.pose_rows]:
+            assert rigid_transform_problem(T) is None
+    if meas.points is not None:
+        seen = np.isfinite(meas.points)
+        assert np.all(seen.all(-1) == seen.any(-1))  # a point is all given or all empty
+        assert np.all(seen.any(-1).any(-1) | meas.pose_rows)  # every row measures something
     try:
         warnings = check_plausibility(ARM, meas)
     except MeasurementFileError as e:

@@ -82,8 +82,8 @@ def test_cdra_directions_read_as_named_combinations(cdra):
     # Upper arm: 300 mm along z, elbow axis y: rotation a about y in both frames comes with a
     # -300 a mm shift along x of upper_arm (rotation part normalised: 0.707 -> 212 mm).
     assert rep.unidentifiable == (
-        "0.707 upper_arm.wy - 0.707 forearm.wy - 212 upper_arm.vx",
-        "0.707 upper_arm.vy - 0.707 forearm.vy",
+        "0.707 rad upper_arm.wy - 0.707 rad forearm.wy - 212 mm upper_arm.vx",
+        "0.707 mm upper_arm.vy - 0.707 mm forearm.vy",
     )
     d = rep.directions
     rot = [n.split(".")[1].startswith("w") for n in rep.param_names]
@@ -175,4 +175,4 @@ def test_readable_directions_of_a_known_subspace():
     np.testing.assert_allclose(ortho @ ortho.T, np.eye(2), atol=1e-12)
     _assert_same_span(ortho, directions, 1e-12)
     text = identifiability.format_combination(directions[0], names)
-    assert text == "0.707 a.wy - 0.707 b.wx + 35.4 a.vx + 3.54 a.vy - 3.54 b.vy"
+    assert text == "0.707 rad a.wy - 0.707 rad b.wx + 35.4 mm a.vx + 3.54 mm a.vy - 3.54 mm b.vy"

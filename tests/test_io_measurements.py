@@ -309,12 +309,6 @@ BAD_CASES = {
         ),
         ["line 3 (header row)", "column 'measured.qw'", "both orientation column sets"],
     ),
-    "neither orientation set": (
-        lambda t: _drop_column(
-            _drop_column(_drop_column(t, "measured.rx"), "measured.ry"), "measured.rz"
-        ),
-        ["column 'measured.rx'", "missing measured orientation"],
-    ),
     "incomplete rotation vector": (
         lambda t: _drop_column(t, "measured.ry"),
         ["column 'measured.ry'", "missing column measured.ry"],

@@ -93,10 +93,12 @@ def test_table_one_differences_lie_in_the_null_space(cdra, table):
 
 
 def _parse_combination(text, names):
-    """A vector over ``names`` from ``format_combination`` text ("0.707 a.wy - 217 a.vx ...")."""
+    """A vector over ``names`` from ``format_combination`` text
+    ("0.707 rad a.wy - 217 mm a.vx ...")."""
     v = np.zeros(len(names))
     for term in text.replace(" - ", " + -").split(" + "):
-        coef, name = term.split()
+        coef, unit, name = term.split()
+        assert unit == ("rad" if name.rsplit(".", 1)[1].startswith("w") else "mm")
         v[names.index(name)] += float(coef)
     return v
 

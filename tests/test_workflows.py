@@ -15,7 +15,7 @@ import pytest
 from matplotlib.figure import Figure
 
 import cdra_jax
-from cdra_jax import cli, workflows
+from cdra_jax import cli, sweeps, workflows
 from cdra_jax.io import load_result
 
 NOISE = workflows.noise_model(0.05, 5e-4)
@@ -62,8 +62,10 @@ def test_calibrate_result_object(calibration, tmp_path):
 
 def test_calibrate_solver_names_are_those_of_sweep(truth_sim):
     fit, _ = truth_sim
-    assert workflows.SOLVERS == ("paper", "weighted", "lm")
-    assert workflows.calibrate(None, fit.measurements).result["solver"] == "paper"
+    assert workflows.SOLVERS == ("auto", "paper", "weighted", "lm")
+    # the batched sweeps run the paper's solvers, by the same names
+    assert set(sweeps.SOLVERS) == set(workflows.SOLVERS) - {"auto"}
+    assert workflows.calibrate(None, fit.measurements).result["solver"] == "auto"
     # explicit "paper" with a noise model: the unweighted solve, the noise for the uncertainty
     r = workflows.calibrate(None, fit.measurements, solver="paper", noise=NOISE)
     assert r.result["solver"] == "paper" and "uncertainty" in r.result

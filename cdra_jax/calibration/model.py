@@ -94,6 +94,28 @@ def residual_twist(measured: ArrayLike, model: ArrayLike) -> Array:
     return lie.se3_log(jnp.asarray(measured) @ lie.inverse(model))
 
 
+def point_residual(measured: ArrayLike, tool: ArrayLike, xyz: ArrayLike) -> Array:
+    """``e = p_meas - T_tool x`` (mm, world frame): measured points against the model.
+
+    Args:
+        measured: ``(..., m, P, 3)`` measured points.
+        tool: ``(..., m, 4, 4)`` model tool poses.
+        xyz: ``(..., P, 3)`` the points' positions in the tool frame (mm).
+
+    Returns:
+        ``(..., m, P, 3)``.
+    """
+    return jnp.asarray(measured) - tool_points(tool, xyz)
+
+
+def tool_points(tool: ArrayLike, xyz: ArrayLike) -> Array:
+    """World positions ``T_tool x`` ``(..., m, P, 3)`` of tool-frame points ``xyz (..., P, 3)``
+    at the tool poses ``(..., m, 4, 4)`` (mm)."""
+    tool = jnp.asarray(tool)
+    pts = jnp.einsum("...mij,...pj->...mpi", tool[..., :3, :3], jnp.asarray(xyz))
+    return pts + tool[..., None, :3, 3]
+
+
 def whitening(measured: ArrayLike, noise: NoiseModel | None) -> Array | None:
     """Per-pose whitening matrices ``G (..., 6, 6)`` for the residual, or ``None`` (paper form).
 

@@ -13,15 +13,17 @@ import argparse
 import sys
 
 from ..io.files import check_distinct_files, check_output
-from ..workflows.calibrate import check_solver
+from ..workflows.calibrate import LOSSES, SOLVERS, check_solver
 from ..workflows.inputs import check_range
 from . import common
 
 SOLVER_HELP = (
-    "paper: the paper's unweighted iterative least squares (Eqs. 9-14); weighted: the same "
-    "iteration whitened by the noise model (needs --noise-pos/--noise-rot); lm: "
-    "Levenberg-Marquardt, whitened when a noise model is given (default: weighted with a noise "
-    "model, else paper)"
+    "auto: noise scales estimated from the data, a Huber loss, the measuring device's frame "
+    "registered; full poses, points and markers (the default without --noise-pos/--noise-rot, "
+    "and for point data); paper: the paper's unweighted iterative least squares (Eqs. 9-14); "
+    "weighted: the same iteration whitened by the noise model (needs --noise-pos/--noise-rot; "
+    "the default with them); lm: Levenberg-Marquardt, whitened when a noise model is given. "
+    "paper, weighted and lm fit full tool poses only"
 )
 
 
@@ -31,8 +33,9 @@ def register(subparsers) -> argparse.ArgumentParser:
         "calibrate",
         help="identify the fixed-frame errors of a model from a measurement CSV",
         description=(
-            "Calibrate the fixed transforms of a modular arm from measured tool poses "
-            "(Mustafa et al. 2008, Eqs. 7-21) and write the result as JSON. Exit code 3 when "
+            "Calibrate the fixed transforms of a serial arm (and the positions of markers marked "
+            "calibrate) from measured tool poses, tool positions or markers (Mustafa et al. "
+            "2008, Eqs. 7-21) and write the result as JSON. Exit code 3 when "
             "the solver did not converge, 4 when the calibrated model fits the measured points "
             "worse than the nominal one (the result is still written, marked untrusted)."
         ),
@@ -40,14 +43,17 @@ def register(subparsers) -> argparse.ArgumentParser:
     common.add_model_option(p)
     p.add_argument("--data", metavar="D", required=True, help="measurement CSV file")
     p.add_argument("--out", metavar="R", required=True, help="result JSON file to write")
-    p.add_argument("--solver", choices=("paper", "weighted", "lm"), default=None, help=SOLVER_HELP)
-    common.add_noise_options(p, "of the measured tool poses, to weight the residual")
+    p.add_argument("--solver", choices=SOLVERS, default=None, help=SOLVER_HELP)
+    common.add_noise_options(
+        p, "of the measuring device, to weight the residual (default: estimated from the data)"
+    )
     p.add_argument(
         "--loss",
-        choices=("ls", "huber", "cauchy"),
-        default="ls",
-        help="ls: plain least squares, as in the paper (default); huber or cauchy: robust "
-        "estimation that down-weights outlying poses (iteratively reweighted, around --solver)",
+        choices=LOSSES,
+        default=None,
+        help="huber: robust estimation that down-weights outlying measurements (the default of "
+        "auto); cauchy: a stronger robust loss (paper/weighted/lm); ls or none: plain "
+        "(weighted) least squares, as in the paper (the default of paper/weighted/lm)",
     )
     p.add_argument(
         "--reject-outliers",
@@ -61,7 +67,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         metavar="N",
         type=int,
         help="iteration cap (default: 20 for paper/weighted, 50 for lm; per round for a "
-        "robust loss)",
+        "robust loss; 100 per round for auto)",
     )
     p.add_argument(
         "--model-out",
@@ -79,12 +85,12 @@ def run(args: argparse.Namespace) -> int:
     noise = common.noise(args)
     if args.max_iterations is not None:
         check_range("--max-iterations", args.max_iterations)
-    if args.reject_outliers and args.loss == "ls":
+    if args.reject_outliers and args.loss in (None, "ls", "none"):
         raise ValueError(
             "--reject-outliers needs a robust loss to flag the outliers: add --loss huber or "
             "--loss cauchy"
         )
-    if args.solver is not None:
+    if args.solver is not None and args.solver != "auto":
         check_solver(args.solver, noise, "--solver")
     check_distinct_files(
         [("--out", args.out), ("--model-out", args.model_out), ("--plot", args.plot)],

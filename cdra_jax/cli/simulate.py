@@ -59,6 +59,34 @@ def register(subparsers) -> argparse.ArgumentParser:
         type=float,
         help="std of Gaussian noise on each cable length; needs --cables (default 0)",
     )
+    p.add_argument(
+        "--points",
+        action="store_true",
+        help="measure points instead of full tool poses: the model's [[markers]] "
+        "(measured.<marker>.x/y/z), or the tool origin (measured.x/y/z) for a model without "
+        "markers; --noise-pos is then the std of each point",
+    )
+    p.add_argument(
+        "--occlusion",
+        metavar="P",
+        type=float,
+        help="with --points: probability that a point is not seen in a row (default 0)",
+    )
+    p.add_argument(
+        "--marker-error",
+        metavar="MM",
+        type=float,
+        help="with --points: markers with calibrate = true sit off their model position by up "
+        "to MM per component (default 0)",
+    )
+    p.add_argument(
+        "--device-frame",
+        metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
+        type=float,
+        nargs=6,
+        help="write the measurements in a measuring device's frame: the pose of the robot's "
+        "world frame in it (mm, rotation vector in rad)",
+    )
     p.add_argument("--out", metavar="D", required=True, help="measurement CSV file to write")
     p.add_argument("--truth", metavar="T.json", help="also write the preset errors as JSON")
     common.add_force_option(p)
@@ -74,9 +102,17 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--d-v/--d-w set the range of random errors; they need --errors random")
     if args.cable_noise is not None and not args.cables:
         raise ValueError("--cable-noise needs --cables (noise on the written cable lengths)")
-    for flag, v in (("--d-v", args.d_v), ("--d-w", args.d_w), ("--cable-noise", args.cable_noise)):
+    for flag, v in (
+        ("--d-v", args.d_v),
+        ("--d-w", args.d_w),
+        ("--cable-noise", args.cable_noise),
+        ("--occlusion", args.occlusion),
+        ("--marker-error", args.marker_error),
+    ):
         if v is not None:
             check_range(flag, v)
+    if (args.occlusion is not None or args.marker_error is not None) and not args.points:
+        raise ValueError("--occlusion and --marker-error need --points (measured points)")
     errors_file = None if args.errors in ("random", "zero") else args.errors
     check_distinct_files(
         [("--out", args.out), ("--truth", args.truth)],
@@ -97,6 +133,10 @@ def run(args: argparse.Namespace) -> int:
         noise=noise,
         cables=args.cables,
         cable_noise=args.cable_noise,
+        points=args.points,
+        occlusion=args.occlusion or 0.0,
+        marker_error_mm=args.marker_error or 0.0,
+        device_frame=args.device_frame,
     )
     written = sim.save(args.out, args.truth, force=args.force)
     print("\n".join([sim.report(), *(common.wrote(p) for p in written)]))

@@ -13,6 +13,7 @@ from .frame_errors import FrameErrorFileError as FrameErrorFileError
 from .frame_errors import frame_errors_from_mapping as frame_errors_from_mapping
 from .frame_errors import frame_errors_to_dict as frame_errors_to_dict
 from .frame_errors import load_frame_errors as load_frame_errors
+from .frame_errors import load_marker_truth as load_marker_truth
 from .frame_errors import save_frame_errors as save_frame_errors
 from .measurements import MeasurementFileError as MeasurementFileError
 from .measurements import Measurements as Measurements
@@ -33,6 +34,7 @@ from .model import loads_model as loads_model
 from .model import save_model as save_model
 from .plausibility import check_plausibility as check_plausibility
 from .results import ResultFileError as ResultFileError
+from .results import auto_result_to_dict as auto_result_to_dict
 from .results import calibrated_arm_from_result as calibrated_arm_from_result
 from .results import dumps_result as dumps_result
 from .results import load_result as load_result

@@ -115,7 +115,36 @@ def _number(where: str, v: Any) -> float:
 
 def load_frame_errors(path: str | os.PathLike, arm: Arm) -> np.ndarray:
     """Read a frame-error file (``.toml``, otherwise JSON): error twists ``(K+1, 6)``."""
-    path = Path(path)
+    return frame_errors_from_mapping(_read_spec(Path(path)), arm, str(path))
+
+
+def load_marker_truth(path: str | os.PathLike, arm: Arm) -> dict[str, tuple[float, ...]]:
+    """The optional ``markers`` table of a frame-error file (``simulate --truth`` writes it):
+    marker name -> true position in the tool frame (mm). Empty when the file has none."""
+    spec = _read_spec(Path(path))
+    table = (spec.get("markers") if isinstance(spec, dict) else None) or {}
+    if not isinstance(table, dict):
+        raise FrameErrorFileError(f"{path}: markers: expected a table of name = [x, y, z]")
+    out = {}
+    known = {mk.name for mk in arm.markers}
+    for name, xyz in table.items():
+        if name not in known:
+            raise FrameErrorFileError(
+                f"{path}: markers.{name}: the model declares no marker {name!r}; markers: "
+                + (", ".join(sorted(known)) or "none")
+            )
+        ok = isinstance(xyz, list) and len(xyz) == 3
+        ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in xyz)
+        if not ok or not all(math.isfinite(v) for v in xyz):
+            raise FrameErrorFileError(
+                f"{path}: markers.{name}: expected 3 finite numbers (mm), got {xyz!r}"
+            )
+        out[name] = tuple(float(v) for v in xyz)
+    return out
+
+
+def _read_spec(path: Path) -> Any:
+    """The parsed content of a frame-error file (``.toml``, otherwise JSON)."""
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as e:
@@ -141,7 +170,7 @@ def load_frame_errors(path: str | os.PathLike, arm: Arm) -> np.ndarray:
             raise FrameErrorFileError(f"{path}: not valid JSON: {e}") from None
         except RecursionError:
             raise FrameErrorFileError(f"{path}: not valid JSON: nested too deeply") from None
-    return frame_errors_from_mapping(spec, arm, str(path))
+    return spec
 
 
 def save_frame_errors(

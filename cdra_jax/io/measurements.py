@@ -17,11 +17,16 @@ Columns (any order; the order is kept when the file is written back):
   ``measured.rx .ry .rz`` (rotation vector, rad) or ``measured.qw .qx .qy .qz`` (unit quaternion,
   scalar first). A quaternion whose norm is within 1e-6 of 1 is normalised for the pose
   matrix (the file values are kept as given); beyond that it is an error.
+* Or points only: ``measured.x .y .z`` without orientation columns (or with the orientation cells
+  of a row left empty) measure the tool-frame origin, and ``measured.<marker>.x .y .z`` the
+  markers declared in the model (``[[markers]]``). An empty cell means the point was not seen in
+  that row (occlusion); a point's three cells are all given or all empty; a row needs a full pose
+  or at least one seen point. Files may mix full-pose rows and point rows.
 * Optional auxiliaries: ``time_s``, ``approach.<module>`` (+1 or -1, the sign of the last motion),
   ``payload_kg``, ``temperature_c``.
 
-Every cell except ``pose`` must be a finite number in decimal notation (``1_0`` is not read as
-10) of magnitude at most :data:`MAX_MAGNITUDE`; a pose identifier holds no control characters.
+Every cell except ``pose`` and the empty cells of measured points must be a finite number in
+decimal notation (``1_0`` is not read as 10) of magnitude at most :data:`MAX_MAGNITUDE`; a pose identifier holds no control characters.
 Errors are :class:`MeasurementFileError` (a ``ValueError``) naming the file, the line and the
 column. The reader accepts any number of rows; :func:`check_pose_count` enforces the
 calibration's minimum of 4 distinct module configurations (Section IV, Eq. 9).
@@ -64,6 +69,9 @@ QUATERNION_COLUMNS = ("measured.qw", "measured.qx", "measured.qy", "measured.qz"
 AUX_COLUMNS = ("time_s", "payload_kg", "temperature_c")
 """Auxiliary columns besides ``approach.<module>``."""
 QUATERNION_TOL = 1e-6
+ORIGIN = "origin"
+"""The name of the tool-frame origin among :attr:`Measurements.point_names` (reserved: no marker
+may be called so)."""
 #: Largest accepted rotation-vector angle (rad).  Far beyond any rotation vector in radians
 #: (even one written in degrees stays below ~312), and small enough that ``sin``/``cos`` of it
 #: keep full double precision, so the rotation built from it is orthonormal to 1e-12.
@@ -95,6 +103,14 @@ class Measurements:
         comments: the ``#`` lines before the header, without the ``#`` (and one space after it).
         source: the file name (for messages).
         lines: 1-based line of each row in ``source`` (for messages), ``(m,)``.
+        full_poses: ``(m, 4, 4)`` measured tool poses of the rows that measure one, NaN in the
+            other rows, or ``None`` when no row does; equal to ``measured`` for a file of full
+            poses only.
+        points: ``(m, P, 3)`` measured points in the world frame (mm), NaN where a point was
+            not seen (or, for the tool origin, where the row measures a full pose), or ``None``
+            for a file of full poses only.
+        point_names: the ``P`` point names: :data:`ORIGIN` (``measured.x/y/z`` of the rows
+            without orientation) and the markers (``measured.<marker>.x/y/z``).
     """
 
     pose_ids: tuple[str, ...]
@@ -107,9 +123,19 @@ class Measurements:
     comments: tuple[str, ...] = ()
     source: str = "<measurements>"
     lines: tuple[int, ...] = field(default=())
+    full_poses: np.ndarray | None = None
+    points: np.ndarray | None = None
+    point_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         m = len(self.pose_ids)
+        if self.full_poses is None and self.measured is not None:
+            object.__setattr__(self, "full_poses", self.measured)
+        if self.points is not None and self.points.shape != (m, len(self.point_names), 3):
+            raise ValueError(
+                f"Measurements: points must be ({m}, {len(self.point_names)}, 3), "
+                f"got {self.points.shape}"
+            )
         if self.q.shape != (m, len(self.state_names)):
             raise ValueError(
                 f"Measurements: q must be (m, dof) = ({m}, {len(self.state_names)}), "
@@ -136,6 +162,18 @@ class Measurements:
         return len(self.pose_ids)
 
     @property
+    def has_measurements(self) -> bool:
+        """Whether any row measures a pose or a point (a pose plan does not)."""
+        return self.full_poses is not None or self.points is not None
+
+    @property
+    def pose_rows(self) -> np.ndarray:
+        """``(m,)`` bool: the rows that measure a full tool pose."""
+        if self.full_poses is None:
+            return np.zeros(self.m, bool)
+        return np.all(np.isfinite(self.full_poses), axis=(-2, -1))
+
+    @property
     def orientation(self) -> Orientation | None:
         """How the measured orientation is given: ``"rotvec"``, ``"quaternion"`` or ``None``."""
         if ROTVEC_COLUMNS[0] in self.values:
@@ -160,6 +198,8 @@ class Measurements:
             pose_ids=tuple(self.pose_ids[i] for i in idx),
             q=self.q[idx],
             measured=None if self.measured is None else self.measured[idx],
+            full_poses=None if self.full_poses is None else self.full_poses[idx],
+            points=None if self.points is None else self.points[idx],
             aux={k: v[idx] for k, v in self.aux.items()},
             values={k: v[idx] for k, v in self.values.items()},
             lines=tuple(self.lines[i] for i in idx),
@@ -177,13 +217,15 @@ class Measurements:
         aux: Mapping[str, ArrayLike] | None = None,
         comments: Iterable[str] = (),
         cable_lengths: Mapping[str, ArrayLike] | None = None,
+        points: Mapping[str, ArrayLike] | None = None,
     ) -> Measurements:
         """Measurements from arrays (joint coordinates; measured orientation as ``orientation``).
 
         Args:
             arm: the model (gives the state columns and module names).
             q: ``(m, dof)`` module states in ``arm.state_names`` order.
-            measured: ``(m, 4, 4)`` measured tool poses, or ``None`` (a pose plan).
+            measured: ``(m, 4, 4)`` measured tool poses, or ``None`` (a pose plan); with
+                ``points``, rows all NaN where a row measures no full pose.
             pose_ids: ``m`` unique non-empty identifiers (default ``p01``, ``p02``, ...).
             orientation: write the measured rotation as ``"rotvec"`` or ``"quaternion"``
                 (``qw >= 0``).
@@ -192,6 +234,9 @@ class Measurements:
             cable_lengths: ``{module: (m, n)}`` measured cable lengths (mm); those modules are
                 written as ``<module>.l1 ... <module>.lN`` columns instead of joint coordinates
                 (``q`` is kept as the states the lengths were measured at).
+            points: ``{name: (m, 3)}`` measured points (mm, world frame), a row all NaN where
+                the point was not seen: :data:`ORIGIN` for the tool-frame origin (rows without
+                a full pose) and markers declared in ``arm.markers``.
         """
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != arm.dof:
@@ -228,11 +273,41 @@ class Measurements:
                 columns.append(f"{mod.name}.l{j + 1}")
         if cables:
             raise ValueError(f"cable_lengths: unknown modules {sorted(cables)}")
+        pts = {name: np.asarray(v, dtype=float) for name, v in (points or {}).items()}
+        for name, v in pts.items():
+            if name != ORIGIN:
+                arm.marker(name)
+            if v.shape != (m, 3) or np.any(np.isnan(v).any(-1) != np.isnan(v).all(-1)):
+                raise ValueError(
+                    f"points[{name!r}]: expected ({m}, 3) positions (mm), a row all NaN where "
+                    f"the point was not seen, got shape {v.shape}"
+                )
+            if not np.all(np.isfinite(v) | np.isnan(v)):
+                raise ValueError(f"points[{name!r}]: contains inf")
         T = None
+        pose_rows = np.zeros(m, bool)
         if measured is not None:
             T = np.asarray(measured, dtype=float)
-            _check_poses(T, m)
-            rv, quat = _float64(_rotvec_quaternion, T)
+            _check_poses(T, m, allow_missing=bool(pts))
+            pose_rows = np.all(np.isfinite(T), axis=(-2, -1))
+        if pts or T is not None:
+            origin = pts.get(ORIGIN, np.full((m, 3), np.nan))
+            both = pose_rows & np.isfinite(origin[:, 0])
+            if np.any(both):
+                raise ValueError(
+                    f"points[{ORIGIN!r}] and measured both give row {int(np.flatnonzero(both)[0])}"
+                    "'s tool position; give one"
+                )
+        if T is not None or ORIGIN in pts:
+            xyz = np.where(pose_rows[:, None], np.full((m, 3), np.nan), origin)
+            if T is not None:
+                xyz = np.where(pose_rows[:, None], T[:, :3, 3], xyz)
+            for j, n in enumerate(POSITION_COLUMNS):
+                values[n] = xyz[:, j].copy()
+            columns += list(POSITION_COLUMNS)
+        if T is not None:
+            safe = np.where(pose_rows[:, None, None], T, np.eye(4))
+            rv, quat = _float64(_rotvec_quaternion, safe)
             names: tuple[str, ...]
             if orientation == "rotvec":
                 rot, names = rv, ROTVEC_COLUMNS
@@ -243,11 +318,25 @@ class Measurements:
                 raise ValueError(
                     f"orientation must be 'rotvec' or 'quaternion', got {orientation!r}"
                 )
-            for j, n in enumerate(POSITION_COLUMNS):
-                values[n] = T[:, j, 3].copy()
+            rot = np.where(pose_rows[:, None], rot, np.nan)
             for j, n in enumerate(names):
                 values[n] = rot[:, j]
-            columns += [*POSITION_COLUMNS, *names]
+            columns += names
+        for name, v in pts.items():
+            if name == ORIGIN:
+                continue
+            for j, c in enumerate("xyz"):
+                values[f"measured.{name}.{c}"] = v[:, j].copy()
+                columns.append(f"measured.{name}.{c}")
+        point_names, point_array = _point_table(arm, values, pose_rows)
+        if point_names and T is None:
+            T = np.full((m, 4, 4), np.nan)
+        if point_names:
+            seen = np.isfinite(point_array[..., 0]).any(-1) | pose_rows
+            if not np.all(seen):
+                raise ValueError(
+                    f"row {int(np.flatnonzero(~seen)[0])} measures neither a full pose nor a point"
+                )
         aux_out: dict[str, np.ndarray] = {}
         for name, v in (aux or {}).items():
             if not _is_aux(name, arm):
@@ -263,7 +352,10 @@ class Measurements:
         return cls(
             pose_ids=pose_ids,
             q=q.copy(),
-            measured=T,
+            measured=T if not point_names else None,
+            full_poses=None if T is None or not pose_rows.any() else T,
+            points=point_array if point_names else None,
+            point_names=point_names,
             aux=aux_out,
             state_names=arm.state_names,
             columns=tuple(columns),
@@ -326,16 +418,43 @@ def rigid_transform_problem(T: ArrayLike, tol: float = _ORTHO_TOL) -> str | None
     return None
 
 
-def _check_poses(T: np.ndarray, m: int) -> None:
+def _check_poses(T: np.ndarray, m: int, allow_missing: bool = False) -> None:
     if T.shape != (m, 4, 4):
         raise ValueError(f"measured must have shape ({m}, 4, 4), got {T.shape}")
     for i in range(m):
+        if allow_missing and np.all(np.isnan(T[i])):
+            continue
         problem = rigid_transform_problem(T[i])
         if problem:
             raise ValueError(
                 f"measured[{i}]: measured poses must be rigid transforms [[R, p], [0, 1]]; "
                 f"{problem}"
             )
+
+
+def _point_table(
+    arm: Arm, values: Mapping[str, np.ndarray], pose_rows: np.ndarray
+) -> tuple[tuple[str, ...], np.ndarray]:
+    """``(point_names, (m, P, 3))`` from the measured columns in ``values`` (NaN = not seen).
+
+    The tool origin is a point of the rows without a full pose; markers follow in the model's
+    order. Empty when the file has full poses only.
+    """
+    m = pose_rows.shape[0]
+    names: list[str] = []
+    cols: list[np.ndarray] = []
+    if POSITION_COLUMNS[0] in values and not np.all(pose_rows):
+        xyz = np.stack([values[c] for c in POSITION_COLUMNS], axis=-1)
+        names.append(ORIGIN)
+        cols.append(np.where(pose_rows[:, None], np.nan, xyz))
+    for mk in arm.markers:
+        keys = [f"measured.{mk.name}.{c}" for c in "xyz"]
+        if keys[0] in values:
+            names.append(mk.name)
+            cols.append(np.stack([values[k] for k in keys], axis=-1))
+    if not names:
+        return (), np.zeros((m, 0, 3))
+    return tuple(names), np.stack(cols, axis=1)
 
 
 def _check_ids(ids: Sequence[str], err) -> None:
@@ -502,6 +621,9 @@ def loads_measurements(
         vals = []
         for j, name in numeric:
             cell = row[j]
+            if name in layout.optional and not cell.strip():
+                vals.append(math.nan)  # a measured value not given in this row (occlusion)
+                continue
             try:
                 v = parse_number(cell)
             except ValueError:
@@ -555,10 +677,34 @@ def loads_measurements(
                 )
 
     measured = None
+    pose_rows = np.zeros(m, bool)
+    for group in _measured_groups(layout):
+        given = np.isfinite(np.stack([values[c] for c in group], axis=-1))
+        partial = np.flatnonzero(given.any(-1) & ~given.all(-1))
+        if partial.size:
+            k = int(partial[0])
+            raise ctx.error(
+                f"empty cell: {', '.join(group)} are given together or left empty together "
+                "(all empty: the point was not seen in this row)",
+                column=group[int(np.argmin(given[k]))],
+                row=k,
+            )
     if layout.orientation is not None:
-        xyz = np.stack([values[c] for c in POSITION_COLUMNS], axis=-1)
+        rot_cols = ROTVEC_COLUMNS if layout.orientation == "rotvec" else QUATERNION_COLUMNS
+        pose_rows = np.isfinite(values[rot_cols[0]])
+        no_position = np.flatnonzero(pose_rows & ~np.isfinite(values[POSITION_COLUMNS[0]]))
+        if no_position.size:
+            raise ctx.error(
+                "a measured orientation needs the measured position (measured.x/y/z) of the "
+                "same row; this row leaves it empty",
+                column=POSITION_COLUMNS[0],
+                row=int(no_position[0]),
+            )
+    if layout.orientation is not None and pose_rows.any():
+        xyz = np.stack([values[c] for c in POSITION_COLUMNS], axis=-1)[pose_rows]
+        first = np.flatnonzero(pose_rows)
         if layout.orientation == "rotvec":
-            rv = np.stack([values[c] for c in ROTVEC_COLUMNS], axis=-1)
+            rv = np.stack([values[c] for c in ROTVEC_COLUMNS], axis=-1)[pose_rows]
             angle = np.linalg.norm(rv, axis=-1)
             bad = np.flatnonzero(~(angle <= ROTVEC_MAX_ANGLE))
             if bad.size:
@@ -570,11 +716,11 @@ def loads_measurements(
                     "not a rotation vector in radians (a position or a value in another unit "
                     "in this column?)",
                     column=ROTVEC_COLUMNS[j],
-                    row=k,
+                    row=int(first[k]),
                 )
-            (measured,) = _float64(_poses_from_rotvec, xyz, rv)
+            (poses,) = _float64(_poses_from_rotvec, xyz, rv)
         else:
-            quat = np.stack([values[c] for c in QUATERNION_COLUMNS], axis=-1)
+            quat = np.stack([values[c] for c in QUATERNION_COLUMNS], axis=-1)[pose_rows]
             norm = np.linalg.norm(quat, axis=-1)
             bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_TOL)
             if bad.size:
@@ -584,14 +730,32 @@ def loads_measurements(
                     f"unit: its norm {norm[k]:.7g} differs from 1 by {abs(norm[k] - 1.0):.3g} "
                     f"(tolerance {QUATERNION_TOL:g})",
                     column=QUATERNION_COLUMNS[0],
-                    row=k,
+                    row=int(first[k]),
                 )
-            (measured,) = _float64(_poses_from_quaternion, xyz, quat / norm[:, None])
+            (poses,) = _float64(_poses_from_quaternion, xyz, quat / norm[:, None])
+        measured = np.full((m, 4, 4), np.nan)
+        measured[pose_rows] = poses
+    elif layout.orientation is not None:
+        measured = np.full((m, 4, 4), np.nan)  # no rows
+    point_names, point_array = _point_table(arm, values, pose_rows)
+    if point_names:
+        empty = np.flatnonzero(~(np.isfinite(point_array[..., 0]).any(-1) | pose_rows))
+        if empty.size:
+            raise ctx.error(
+                "the row measures nothing: every measured cell is empty; a row needs a full pose "
+                "or at least one seen point",
+                column=_measured_groups(layout)[0][0],
+                row=int(empty[0]),
+            )
+    full_poses = measured if pose_rows.any() or (m == 0 and measured is not None) else None
 
     return Measurements(
         pose_ids=tuple(ids),
         q=q,
-        measured=measured,
+        measured=None if point_names else full_poses,
+        full_poses=full_poses,
+        points=point_array if point_names else None,
+        point_names=point_names,
         aux=aux,
         state_names=arm.state_names,
         columns=tuple(header),
@@ -607,6 +771,27 @@ class _Layout:
     states: list[tuple[StateSource, tuple[str, ...]]]
     aux: list[str]
     orientation: Orientation | None
+    origin: bool = False
+    markers: tuple[str, ...] = ()
+
+    @property
+    def optional(self) -> frozenset[str]:
+        """The columns whose cells may be empty: the measured ones (a point not seen in a row,
+        or a row that measures points but no orientation)."""
+        return frozenset(c for g in _measured_groups(self) for c in g)
+
+
+def _measured_groups(layout: _Layout) -> list[tuple[str, ...]]:
+    """The measured columns that are given or left empty together, row by row."""
+    groups: list[tuple[str, ...]] = []
+    if layout.origin:
+        groups.append(POSITION_COLUMNS)
+    if layout.orientation == "rotvec":
+        groups.append(ROTVEC_COLUMNS)
+    elif layout.orientation == "quaternion":
+        groups.append(QUATERNION_COLUMNS)
+    groups += [tuple(f"measured.{name}.{c}" for c in "xyz") for name in layout.markers]
+    return groups
 
 
 def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured: bool) -> _Layout:
@@ -650,9 +835,17 @@ def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured
         if c in AUX_COLUMNS:
             aux.append(c)
         elif c.startswith("measured."):
-            if c not in known_measured:
+            if c not in known_measured and not _is_marker_column(c, arm):
                 raise err(
-                    f"unknown column; measured tool pose columns are {', '.join(known_measured)}", c
+                    f"unknown column; measured columns are {', '.join(known_measured)}"
+                    + (
+                        " and measured.<marker>.x/y/z for the model's markers "
+                        + ", ".join(mk.name for mk in arm.markers)
+                        if arm.markers
+                        else " (marker columns measured.<marker>.x/y/z need the marker "
+                        "declared in the model's [[markers]])"
+                    ),
+                    c,
                 )
             measured.append(c)
         elif c.startswith("approach."):
@@ -705,7 +898,23 @@ def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured
         states.append((src, src.columns(mod, suffixes, ctx)))
 
     orientation: Orientation | None = None
-    if measured or require_measured:
+    marker_cols = [c for c in measured if c.count(".") == 2]
+    markers: list[str] = []
+    for c in marker_cols:
+        name = c.split(".")[1]
+        if name not in markers:
+            markers.append(name)
+    for name in markers:
+        for axis in "xyz":
+            if f"measured.{name}.{axis}" not in measured:
+                raise err(
+                    f"missing column measured.{name}.{axis} (marker {name!r} needs x, y and z, mm)",
+                    f"measured.{name}.{axis}",
+                )
+    markers = [mk.name for mk in arm.markers if mk.name in markers]  # the model's order
+    pose_cols = [c for c in measured if c not in marker_cols]
+    origin = any(c in POSITION_COLUMNS for c in pose_cols)
+    if pose_cols or (require_measured and not markers):
         for c in POSITION_COLUMNS:
             if c not in measured:
                 raise err(f"missing column {c} (measured tool position, mm)", c)
@@ -717,19 +926,22 @@ def _parse_header(header: list[str], arm: Arm, ctx: RowContext, require_measured
                 "measured.qw/qx/qy/qz); give exactly one",
                 has_q[0],
             )
-        if not has_rv and not has_q:
-            raise err(
-                "missing measured orientation: give measured.rx, measured.ry, measured.rz "
-                "(rotation vector, rad) or measured.qw, measured.qx, measured.qy, measured.qz "
-                "(unit quaternion)",
-                ROTVEC_COLUMNS[0],
-            )
-        need = ROTVEC_COLUMNS if has_rv else QUATERNION_COLUMNS
-        for c in need:
-            if c not in measured:
-                raise err(f"missing column {c} (the orientation needs {', '.join(need)})", c)
-        orientation = "rotvec" if has_rv else "quaternion"
-    return _Layout(states, aux, orientation)
+        if has_rv or has_q:
+            need = ROTVEC_COLUMNS if has_rv else QUATERNION_COLUMNS
+            for c in need:
+                if c not in measured:
+                    raise err(f"missing column {c} (the orientation needs {', '.join(need)})", c)
+            orientation = "rotvec" if has_rv else "quaternion"
+    return _Layout(states, aux, orientation, origin, tuple(markers))
+
+
+def _is_marker_column(column: str, arm: Arm) -> bool:
+    parts = column.split(".")
+    return (
+        len(parts) == 3
+        and parts[2] in ("x", "y", "z")
+        and any(mk.name == parts[1] for mk in arm.markers)
+    )
 
 
 _NUMBER = re.compile(
@@ -773,7 +985,8 @@ def load_measurements(
 
 
 def dumps_measurements(meas: Measurements) -> str:
-    """CSV text of ``meas``: comments, header, rows (floats as ``repr``; lossless)."""
+    """CSV text of ``meas``: comments, header, rows (floats as ``repr``, empty where a measured
+    value is not given; lossless)."""
     out = io.StringIO()
     for c in meas.comments:
         for part in str(c).splitlines() or [""]:
@@ -781,8 +994,12 @@ def dumps_measurements(meas: Measurements) -> str:
     out.write(_csv_line(meas.columns))
     cols = [None if c == POSE_COLUMN else meas.values[c] for c in meas.columns]
     for i, pid in enumerate(meas.pose_ids):
-        out.write(_csv_line([pid if col is None else repr(float(col[i])) for col in cols]))
+        out.write(_csv_line([pid if col is None else _cell(float(col[i])) for col in cols]))
     return out.getvalue()
+
+
+def _cell(v: float) -> str:
+    return "" if math.isnan(v) else repr(v)
 
 
 def _csv_line(cells: Sequence[str]) -> str:

@@ -20,6 +20,11 @@ Format (see the README for a complete example)::
     #           optionally with offset = <mm> (measured length = attachment distance + offset),
     #           mass (kg), com (mm, platform frame), pretension (N), stiffness (N/mm)
 
+    [[markers]]                      # optional: measured points on the tool
+    name = "m1"                      # columns measured.m1.x, measured.m1.y, measured.m1.z
+    xyz = [0.0, 40.0, 25.0]          # mm, tool frame
+    calibrate = true                 # optional: the position is rough, identify it
+
 Frames are written back as ``xyz`` + ``rotvec`` (floats printed with all 17 significant digits,
 reproducing the matrix to ~1e-16), or as ``matrix`` with ``exact=True`` (bit-exact round trip).
 """
@@ -39,7 +44,7 @@ import numpy as np
 import tomli_w
 
 from .. import lie
-from ..arm import MODULE_KINDS, Arm, Module
+from ..arm import MODULE_KINDS, Arm, Marker, Module
 from ..compilation import jit
 from .files import write_text_atomic
 
@@ -312,7 +317,7 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
     """Build an :class:`Arm` from the parsed TOML mapping (``source`` names it in errors)."""
     if not isinstance(spec.get("name"), str):
         raise _err(source, "top level", "needs a 'name' (string)")
-    unknown = sorted(set(spec) - {"name", "description", "gravity", "frames", "modules"})
+    unknown = sorted(set(spec) - {"name", "description", "gravity", "frames", "modules", "markers"})
     if unknown:
         raise _err(source, "top level", f"unknown keys {unknown}")
     if not isinstance(spec.get("description", ""), str):
@@ -345,6 +350,7 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
     if dup:
         raise _err(source, "top level", f"frame and module names must be unique, repeated: {dup}")
     gravity = _vector(source, "gravity", spec.get("gravity", [0.0, 0.0, -9.81]), 3)
+    markers = _markers(source, spec.get("markers", []))
     return Arm(
         frames=jnp.asarray(mats),
         modules=mods,
@@ -352,7 +358,51 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
         name=spec["name"],
         description=spec.get("description", ""),
         gravity=jnp.asarray(gravity),
+        markers=markers,
     )
+
+
+def _markers(source: str, specs: Any) -> tuple[Marker, ...]:
+    """The ``[[markers]]`` tables: ``name``, ``xyz`` (mm, tool frame), optional ``calibrate``."""
+    if not isinstance(specs, list):
+        raise _err(source, "markers", f"expected [[markers]] tables, got {_short(specs)}")
+    out: list[Marker] = []
+    for i, spec in enumerate(specs):
+        if not isinstance(spec, Mapping):
+            raise _err(source, f"markers[{i}]", f"expected a table ([[markers]]), got {spec!r}")
+        name = spec.get("name")
+        if not isinstance(name, str) or not name:
+            raise _err(source, f"markers[{i}]", "needs a 'name' (string)")
+        where = f"markers[{i}] ({name})"
+        bad = sorted({ch for ch in name if ch in _NAME_FORBIDDEN or not ch.isprintable()})
+        if bad or name != name.strip():
+            raise _err(
+                source,
+                where,
+                "a marker name makes the measurement columns measured.<name>.x/y/z, so it "
+                "cannot contain " + " or ".join(map(repr, bad or [" (leading/trailing)"])),
+            )
+        if name in {"x", "y", "z", "rx", "ry", "rz", "qw", "qx", "qy", "qz", "origin"}:
+            raise _err(
+                source,
+                where,
+                f"{name!r} names a measured tool pose column or the tool origin; rename the marker",
+            )
+        unknown = sorted(set(spec) - {"name", "xyz", "calibrate"})
+        if unknown:
+            raise _err(
+                source, where, f"unknown keys {unknown}; known: ['calibrate', 'name', 'xyz']"
+            )
+        if "xyz" not in spec:
+            raise _err(source, where, "needs 'xyz' (position in the tool frame, mm)")
+        xyz = _vector(source, f"{where}.xyz", spec["xyz"], 3)
+        calibrate = spec.get("calibrate", False)
+        if not isinstance(calibrate, bool):
+            raise _err(source, f"{where}.calibrate", f"expected true or false, got {calibrate!r}")
+        if any(m.name == name for m in out):
+            raise _err(source, where, f"marker name {name!r} is used twice")
+        out.append(Marker(name=name, xyz=tuple(float(v) for v in xyz), calibrate=calibrate))
+    return tuple(out)
 
 
 def load_model(path: str | os.PathLike) -> Arm:
@@ -436,6 +486,11 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
     out["gravity"] = _floats(arm.gravity)
     out["frames"] = frames
     out["modules"] = modules
+    if arm.markers:
+        out["markers"] = [
+            {"name": mk.name, "xyz": list(mk.xyz), **({"calibrate": True} if mk.calibrate else {})}
+            for mk in arm.markers
+        ]
     return out
 
 

@@ -50,6 +50,7 @@ numbers are written as ``null``. ``matrix`` entries reproduce the frames bit for
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.metadata
 import json
 import math
@@ -66,7 +67,9 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import TWIST_COMPONENTS, Arm, tool_pose
+from ..calibration.auto import AutoSolution
 from ..calibration.model import NoiseModel, pose_errors
+from ..calibration.observations import Observations, raw_errors
 from ..calibration.robust import OUTLIER_THRESHOLD, RobustSolution, standardized_residuals
 from ..calibration.solution import CalibrationSolution, result_messages, result_names
 from ..compilation import filter_jit
@@ -419,10 +422,213 @@ def result_frames(result: Mapping[str, Any], which: str = "calibrated") -> dict[
 
 
 def calibrated_arm_from_result(result: Mapping[str, Any], nominal: Arm) -> Arm:
-    """``nominal`` with the calibrated frames of a result (Eq. 19); frame names must match."""
+    """``nominal`` with the calibrated frames (Eq. 19) and marker positions of a result; frame
+    names must match."""
     frames = result_frames(result, "calibrated")
     if tuple(frames) != nominal.frame_names:
         raise ValueError(
             f"the result's frames {tuple(frames)} do not match the model's {nominal.frame_names}"
         )
-    return nominal.with_frames(jnp.asarray(np.stack([frames[n] for n in nominal.frame_names])))
+    arm = nominal.with_frames(jnp.asarray(np.stack([frames[n] for n in nominal.frame_names])))
+    markers = result.get("markers") or {}
+    if markers:
+        arm = arm.with_markers(
+            [
+                dataclasses.replace(mk, xyz=tuple(markers[mk.name]["calibrated"]))
+                if mk.name in markers
+                else mk
+                for mk in nominal.markers
+            ]
+        )
+    return arm
+
+
+def auto_result_to_dict(
+    arm: Arm,
+    solution: AutoSolution,
+    meas_q: ArrayLike,
+    pose_ids: Sequence[str],
+    *,
+    identifiability: Mapping[str, Any],
+    inputs: Mapping[str, Any] | None = None,
+    conditioning: Mapping[str, Any] | None = None,
+    uncertainty: Mapping[str, Any] | None = None,
+    warnings: Sequence[str] = (),
+    observations: Observations,
+) -> dict[str, Any]:
+    """JSON-ready mapping of one :func:`~cdra_jax.calibration.calibrate_auto` result, in the
+    same contract as :func:`result_to_dict` plus ``registration``, ``markers`` and per-point
+    residuals.
+
+    Per row, ``nominal_*`` is the start model (the nominal frames with the base registered to
+    the device frame and rough markers placed, see :mod:`cdra_jax.calibration.registration`)
+    and ``calibrated_*`` the result; ``*_position_mm`` is the mean error of the row's measured
+    positions (a full pose's origin and every seen point), ``*_rotation_rad`` the full pose's
+    rotation error (``null`` without one); ``z`` the largest standardised residual of the
+    row's units, ``weight`` the smallest robust weight, ``points`` the per-point numbers.
+    """
+    sol = solution
+    obs = observations
+    ids = [str(p) for p in pose_ids]
+    m = len(ids)
+    pose_mask = np.asarray(obs.pose_mask)
+    seen = np.asarray(obs.seen)
+    start_frames, start_xyz = sol.start.frames, sol.start.xyz
+    err0 = [np.asarray(a) for a in raw_errors(start_frames, start_xyz, obs)]
+    err1 = [np.asarray(a) for a in raw_errors(sol.frames, sol.xyz, obs)]
+    threshold = sol.outlier_threshold
+
+    def row_numbers(err, i):
+        dpos, ang, e = err
+        norms = []
+        if pose_mask[i]:
+            norms.append(float(np.linalg.norm(dpos[i])))
+        norms += [float(np.linalg.norm(e[i, j])) for j in range(e.shape[1]) if seen[i, j]]
+        pos = sum(norms) / len(norms) if norms else math.nan
+        rot = float(ang[i]) if pose_mask[i] else math.nan
+        return pos, rot
+
+    residuals = []
+    flagged_units: list[str] = []
+    for i in range(m):
+        p0, r0 = row_numbers(err0, i)
+        p1, r1 = row_numbers(err1, i)
+        zs = [sol.z_position[i], sol.z_rotation[i], *sol.z_points[i]]
+        ws = [sol.weights_position[i], sol.weights_rotation[i], *sol.weights_points[i]]
+        zs = [float(z) for z in zs if np.isfinite(z)]
+        ws = [float(w) for w in ws if np.isfinite(w)]
+        units = []
+        if pose_mask[i]:
+            units += [("position", sol.z_position[i]), ("rotation", sol.z_rotation[i])]
+        units += [
+            (sol.point_names[j], sol.z_points[i, j]) for j in range(seen.shape[1]) if seen[i, j]
+        ]
+        out = [name for name, z in units if z > threshold]
+        flagged_units += [f"{ids[i]}:{name}" for name in out]
+        row: dict[str, Any] = {
+            "pose": ids[i],
+            "nominal_position_mm": _num(p0),
+            "nominal_rotation_rad": _num(r0),
+            "calibrated_position_mm": _num(p1),
+            "calibrated_rotation_rad": _num(r1),
+            "z": _num(max(zs)) if zs else None,
+            "weight": _num(min(ws)) if ws else None,
+            "outlier": bool(out),
+        }
+        if seen.shape[1]:
+            row["points"] = {
+                sol.point_names[j]: {
+                    "nominal_mm": _num(np.linalg.norm(err0[2][i, j])),
+                    "calibrated_mm": _num(np.linalg.norm(err1[2][i, j])),
+                    "z": _num(sol.z_points[i, j]),
+                    "weight": _num(sol.weights_points[i, j]),
+                }
+                for j in range(seen.shape[1])
+                if seen[i, j]
+            }
+        residuals.append(row)
+    nominal_frames = np.asarray(arm.frames, dtype=float)
+    nxyz, nrv = (np.asarray(a) for a in lie.to_xyz_rotvec(jnp.asarray(nominal_frames)))
+    cxyz, crv = (np.asarray(a) for a in lie.to_xyz_rotvec(jnp.asarray(sol.frames)))
+    frames = {
+        name: {
+            "nominal": _pose_dict(nominal_frames[j], nxyz[j], nrv[j]),
+            "calibrated": _pose_dict(sol.frames[j], cxyz[j], crv[j]),
+            "error_twist": {
+                c: _num(v) for c, v in zip(TWIST_COMPONENTS, sol.errors[j], strict=True)
+            },
+        }
+        for j, name in enumerate(arm.frame_names)
+    }
+    markers = {}
+    for j, name in enumerate(sol.point_names):
+        if name == "origin":
+            continue
+        mk = arm.marker(name)
+        markers[name] = {
+            "nominal": list(mk.xyz),
+            "calibrated": [float(v) for v in sol.xyz[j]],
+            "calibrate": mk.calibrate,
+        }
+    hist = sol.history
+    warnings = list(warnings)
+    if flagged_units:
+        shown = ", ".join(flagged_units[:5]) + (
+            f" and {len(flagged_units) - 5} more" if len(flagged_units) > 5 else ""
+        )
+        warnings.append(
+            f"{len(flagged_units)} measured unit(s) beyond the outlier bound z > {threshold:.3g} "
+            f"(family-wise 1 %): {shown}; the robust fit down-weighted them"
+            if sol.loss == "huber"
+            else f"{len(flagged_units)} measured unit(s) beyond the outlier bound z > "
+            f"{threshold:.3g} (family-wise 1 %): {shown}"
+        )
+    scales = {
+        "position_mm": _num(sol.sigma_position_mm),
+        "rotation_rad": _num(sol.sigma_rotation_rad),
+        "points_mm": {
+            name: _num(s) for name, s in zip(sol.point_names, sol.sigma_points_mm, strict=True)
+        },
+        "source": sol.noise_source,
+    }
+    return _finite(
+        {
+            "format": RESULT_FORMAT,
+            "format_version": RESULT_FORMAT_VERSION,
+            "cdra_jax_version": package_version(),
+            "inputs": dict(inputs or {}),
+            "model": arm.name,
+            "n_poses": m,
+            "solver": "auto",
+            "converged": bool(sol.converged),
+            "result": sol.result,
+            "message": ""
+            if sol.converged
+            else "the calibration did not settle within the iteration limits",
+            "noise": scales,
+            "loss": sol.loss,
+            "registration": {
+                "registered": bool(sol.start.registered),
+                "markers_placed": [sol.point_names[j] for j in sol.start.placed],
+                "rms_before_mm": _num(sol.start.rms_before_mm),
+                "rms_after_mm": _num(sol.start.rms_after_mm),
+            },
+            "initial": {
+                "delta_p_mm": _num(hist[0]["position_rms_mm"]),
+                "delta_R_rad": _num(hist[0]["rotation_rms_rad"]),
+            },
+            "iterations": [
+                {
+                    "iteration": k,
+                    "step_norm": _num(h["step_norm"]),
+                    "delta_p_mm": _num(h["position_rms_mm"]),
+                    "delta_R_rad": _num(h["rotation_rms_rad"]),
+                }
+                for k, h in enumerate(hist[1:], start=1)
+            ],
+            "final": {
+                "delta_p_mm": _num(hist[-1]["position_rms_mm"]),
+                "delta_R_rad": _num(hist[-1]["rotation_rms_rad"]),
+                "rank": int(sol.rank),
+                "rounds": int(sol.rounds),
+            },
+            "frames": frames,
+            "markers": markers,
+            "identifiability": dict(identifiability),
+            "uncertainty": None if uncertainty is None else dict(uncertainty),
+            "residuals": residuals,
+            "outliers": {
+                "threshold": float(threshold),
+                "scale": {
+                    "position_mm": _num(sol.sigma_position_mm),
+                    "rotation_rad": _num(sol.sigma_rotation_rad),
+                    "source": sol.noise_source,
+                },
+                "poses": [r["pose"] for r in residuals if r["outlier"]],
+                "units": flagged_units,
+            },
+            "robust": None,
+            "conditioning": None if conditioning is None else dict(conditioning),
+            "warnings": warnings,
+        }
+    )

@@ -20,16 +20,33 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..arm import TWIST_COMPONENTS, Arm
-from ..calibration import NoiseModel, calibrate_lm, calibrate_paper, calibrate_robust
+from ..arm import TWIST_COMPONENTS, Arm, error_twists
+from ..calibration import (
+    NoiseModel,
+    RobustSolution,
+    calibrate_auto,
+    calibrate_lm,
+    calibrate_paper,
+    calibrate_robust,
+    make_observations,
+    to_nominal_gauge,
+)
 from ..compilation import cached_filter_jit
-from ..conditioning import conditioning
-from ..identifiability import analyze, generic_rank
+from ..conditioning import conditioning, conditioning_from_jacobian
+from ..identifiability import (
+    analyze,
+    generic_rank,
+    pose_set_warnings,
+    report_from_jacobian,
+)
 from ..io import (
     Measurements,
+    auto_result_to_dict,
     calibrated_arm_from_result,
     check_plausibility,
     check_pose_count,
@@ -42,16 +59,22 @@ from ..plots import calibration_residuals_figure
 from ..uncertainty import analyze_uncertainty
 from .inputs import Data, Model, check_range, resolve_arm, resolve_measurements
 
-SOLVERS: tuple[str, ...] = ("paper", "weighted", "lm")
+SOLVERS: tuple[str, ...] = ("auto", "paper", "weighted", "lm")
 """Solver names, the same in every command and function of the package:
 
+* ``auto`` (the default without a noise model): estimates the noise scale of each residual kind
+  from the data, weights by it, uses a Huber loss, registers the measuring device's frame and
+  fits full poses, points and markers alike (:func:`cdra_jax.calibration.calibrate_auto`);
 * ``paper``: the paper's unweighted iterative least squares (Eqs. 9-14, minimum-norm steps);
-* ``weighted``: the same iteration on the residual whitened by the noise model (needs one);
+* ``weighted``: the same iteration on the residual whitened by the noise model (needs one; the
+  default with a noise model);
 * ``lm``: Levenberg-Marquardt (optimistix), whitened when a noise model is given.
+
+``paper``, ``weighted`` and ``lm`` fit full tool poses only.
 """
-LOSSES: tuple[str, ...] = ("ls", "huber", "cauchy")
-"""``ls``: plain least squares as in the paper; ``huber``/``cauchy``: robust IRLS around the
-solver."""
+LOSSES: tuple[str, ...] = ("huber", "cauchy", "ls", "none")
+"""``huber`` (the default of ``auto``), ``cauchy``: robust; ``ls`` or ``none``: plain (weighted)
+least squares, the default of the other solvers."""
 
 FRAME_ERROR_PLAUSIBLE_MM = 50.0
 """Identified frame errors beyond this translation (norm of the twist's v, mm) ..."""
@@ -61,15 +84,28 @@ small errors of a nominal model, so such a result usually comes from gross error
 (a typo, swapped rows, wrong units) or too few poses to outvote them."""
 
 
-def default_solver(noise: NoiseModel | None) -> str:
-    """``weighted`` when a noise model is given, else ``paper``."""
-    return "paper" if noise is None else "weighted"
+def default_solver(noise: NoiseModel | None, points: bool = False, paper: bool = False) -> str:
+    """``auto``; ``weighted`` when a noise model is given and the data are full poses (or
+    ``paper`` without one, when ``paper`` asks for the paper's solvers)."""
+    if points:
+        return "auto"
+    if noise is not None:
+        return "weighted"
+    return "paper" if paper else "auto"
 
 
-def check_solver(solver: str, noise: NoiseModel | None, flag: str = "solver") -> str:
-    """``solver`` unchanged when it is one of :data:`SOLVERS` usable with ``noise``."""
+def check_solver(
+    solver: str, noise: NoiseModel | None, flag: str = "solver", points: bool = False
+) -> str:
+    """``solver`` unchanged when it is one of :data:`SOLVERS` usable with ``noise`` (and with
+    measured points, when ``points``)."""
     if solver not in SOLVERS:
         raise ValueError(f"{flag} must be one of {', '.join(SOLVERS)}, got {solver!r}")
+    if points and solver != "auto":
+        raise ValueError(
+            f"{flag} {solver} fits full tool poses; these data measure points (the tool origin "
+            "without orientation, or markers): use the auto solver (the default)"
+        )
     if solver == "weighted" and noise is None:
         raise ValueError(
             f"{flag} weighted whitens the residual by the measuring device's noise: give the "
@@ -120,7 +156,11 @@ def implausible_frame_errors_warning(result: dict) -> str | None:
     """The warning for identified frame errors beyond :data:`FRAME_ERROR_PLAUSIBLE_MM` or
     :data:`FRAME_ERROR_PLAUSIBLE_RAD` in a result mapping, or None."""
     large = []
-    for name, frame in result["frames"].items():
+    registered = bool((result.get("registration") or {}).get("registered"))
+    for j, (name, frame) in enumerate(result["frames"].items()):
+        if j == 0 and registered:
+            continue  # the base frame carries the measuring device's registration
+
         t = frame["error_twist"]
         v = math.sqrt(sum((t[c] or 0.0) ** 2 for c in ("vx", "vy", "vz")))
         w = math.sqrt(sum((t[c] or 0.0) ** 2 for c in ("wx", "wy", "wz")))
@@ -220,7 +260,7 @@ def calibrate(
     *,
     solver: str | None = None,
     noise: NoiseModel | None = None,
-    loss: Literal["ls", "huber", "cauchy"] = "ls",
+    loss: Literal["huber", "cauchy", "ls", "none"] | None = None,
     reject_outliers: bool = False,
     max_iterations: int | None = None,
     model_label: str | None = None,
@@ -249,22 +289,39 @@ def calibrate(
         ValueError: bad arguments, or data that fail the plausibility checks (the message names
             the file, row and column); ``OSError`` for unreadable files.
     """
-    if solver is None:
-        solver = default_solver(noise)
-    check_solver(solver, noise)
-    if loss not in LOSSES:
+    if loss is not None and loss not in LOSSES:
         raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
+    if loss == "none":
+        loss = "ls"
     if max_iterations is not None:
         check_range("max_iterations", max_iterations)
+    arm, model_label = resolve_arm(model, model_label)
+    meas, data_label, sha = resolve_measurements(data, arm, data_label)
+    check_pose_count(meas)
+    if not meas.has_measurements:
+        raise ValueError(
+            f"{data_label}: no measured tool poses or points (measured.* columns) to fit"
+        )
+    points = meas.measured is None
+    if solver is None:
+        # A Cauchy loss and the refit without flagged poses go with the paper's solvers.
+        legacy = loss == "cauchy" or reject_outliers
+        solver = default_solver(noise, points and not legacy, legacy)
+    check_solver(solver, noise, points=points)
+    if loss is None:
+        loss = "huber" if solver == "auto" else "ls"
     if reject_outliers and loss == "ls":
         raise ValueError(
             "reject_outliers needs a robust loss to flag the outliers: use loss huber or cauchy"
         )
-    arm, model_label = resolve_arm(model, model_label)
-    meas, data_label, sha = resolve_measurements(data, arm, data_label)
-    check_pose_count(meas)
-    if meas.measured is None:
-        raise ValueError(f"{data_label}: no measured tool poses (measured.* columns) to fit")
+    if solver == "auto":
+        if loss == "cauchy" or reject_outliers:
+            raise ValueError(
+                "the auto solver takes loss huber (default) or ls; a Cauchy loss and "
+                "reject_outliers go with the paper, weighted and lm solvers"
+            )
+        return _calibrate_auto(arm, meas, noise, loss, max_iterations, model_label, data_label, sha)
+    assert meas.measured is not None
     # Wrong units or conventions stop here with an error naming the column; the rest warns.
     plausibility = list(check_plausibility(arm, meas))
     solve_noise = None if solver == "paper" else noise
@@ -280,6 +337,7 @@ def calibrate(
             loss=loss, solver="lm" if solver == "lm" else "paper", reject_outliers=reject_outliers
         )
         sol = cached_filter_jit(calibrate_robust)(arm, meas.q, meas.measured, noise, **kwargs)
+    sol, gauge = _in_nominal_gauge(arm, meas, sol)
     # Unidentifiable directions are reported at the nominal model, where they read simply
     # (e.g. "0.707 upper_arm.vy - 0.707 forearm.vy" for the CDRA).
     ident = analyze(arm, meas.q, meas.measured, noise)
@@ -290,12 +348,7 @@ def calibrate(
     generic = generic_rank(arm, meas.m, noise)
     degenerate = []
     if ident.rank < generic:
-        degenerate.append(
-            f"degenerate pose set: rank {ident.rank} of {ident.n_params} parameters from "
-            f"{ident.n_poses} poses, where as many poses spread over the joint ranges give "
-            f"{generic}; {generic - ident.rank} more combination(s) are lost to the pose set "
-            "(the unidentifiable directions are listed in the summary)"
-        )
+        degenerate.append(_degenerate_text(ident, generic))
     stored = [
         *plausibility,
         *degenerate,
@@ -317,6 +370,7 @@ def calibrate(
         conditioning=cond.to_dict(),
         warnings=stored,
     )
+    result["gauge"] = _gauge_dict(gauge)
     implausible = implausible_frame_errors_warning(result)
     if implausible is not None:
         result["warnings"].append(implausible)
@@ -358,6 +412,175 @@ def calibrate(
     )
 
 
+def _calibrate_auto(
+    arm: Arm,
+    meas: Measurements,
+    noise: NoiseModel | None,
+    loss: str,
+    max_iterations: int | None,
+    model_label: str,
+    data_label: str,
+    sha: str | None,
+) -> CalibrationRun:
+    """The ``auto`` solver's calibration (:func:`cdra_jax.calibration.calibrate_auto`)."""
+    # The state checks first; the measured poses are checked against the nominal model placed
+    # in the measuring device's frame by the registration (they may lie anywhere in it).
+    plausibility = list(check_plausibility(arm, _states_only(meas)))
+    kwargs: dict[str, Any] = {}
+    if max_iterations is not None:
+        kwargs["max_iterations"] = max_iterations
+    sol = calibrate_auto(
+        arm,
+        meas.q,
+        meas.full_poses,
+        meas.points,
+        meas.point_names,
+        noise=noise,
+        loss=loss,
+        **kwargs,
+    )
+    if meas.measured is not None:
+        plausibility = list(check_plausibility(arm.with_frames(sol.start.frames), meas))
+    ident = report_from_jacobian(
+        sol.start_jacobian, sol.param_names, meas.m, warnings=pose_set_warnings(arm, meas.q)
+    )
+    cond = conditioning_from_jacobian(sol.start_jacobian, sol.param_names)
+    degenerate = []
+    if meas.points is None:
+        # Full poses only: the same rank as the paper's problem, compared with generic poses.
+        generic = generic_rank(arm, meas.m)
+        if ident.rank < generic:
+            degenerate.append(_degenerate_text(ident, generic))
+    obs = make_observations(arm, meas.q, meas.full_poses, meas.points)
+    uncertainty = _auto_uncertainty(sol)
+    inputs = {"model": model_label, "data": data_label}
+    if sha is not None:
+        inputs["data_sha256"] = sha
+    stored = [
+        *plausibility,
+        *degenerate,
+        *ident.warnings,
+        *([cond.warning] if cond.warning else []),
+    ]
+    result = auto_result_to_dict(
+        arm,
+        sol,
+        meas.q,
+        meas.pose_ids,
+        identifiability=ident.to_dict(),
+        inputs=inputs,
+        conditioning=cond.to_dict(),
+        uncertainty=uncertainty,
+        warnings=stored,
+        observations=obs,
+    )
+    result["gauge"] = _gauge_dict(sol.gauge)
+    implausible = implausible_frame_errors_warning(result)
+    if implausible is not None:
+        result["warnings"].append(implausible)
+    trust = trust_check(result)
+    result["trusted"] = trust["trusted"]
+    result["trust"] = trust
+    shown = [*plausibility, *degenerate]
+    if degenerate:
+        shown += list(ident.warnings)
+    if cond.warning:
+        shown.append(cond.warning)
+    shown += [w for w in result["warnings"] if w not in shown and w not in ident.warnings]
+    summary = ident.summary() + "\n" + _uncertainty_summary(uncertainty)
+    return CalibrationRun(
+        arm=arm,
+        measurements=meas,
+        solution=sol,
+        result=result,
+        identifiability_summary=summary,
+        warnings=tuple(shown),
+        model_label=model_label,
+        data_label=data_label,
+    )
+
+
+GAUGE_TEXT = (
+    "the identified correction (error twists w.r.t. the nominal frames, marker corrections) "
+    "has no component along the unidentifiable directions of the nominal model; along them "
+    "the result keeps the nominal values"
+)
+"""How every solver's result fixes what the data cannot determine
+(:mod:`cdra_jax.calibration.gauge`)."""
+
+
+def _gauge_dict(g) -> dict[str, Any]:
+    return {"definition": GAUGE_TEXT, "exact": bool(g.exact), "residual": float(g.residual)}
+
+
+def _in_nominal_gauge(arm: Arm, meas: Measurements, sol: Any):
+    """The solution moved onto the nominal gauge (exact moves only), and the move."""
+    robust = isinstance(sol, RobustSolution)
+    base = sol.solution if robust else sol
+    obs = make_observations(arm, meas.q, meas.measured, None)
+    none = np.zeros((0, 3))
+    g = to_nominal_gauge(np.asarray(base.frames), none, np.asarray(arm.frames), none, obs)
+    if g.moved:
+        frames = jnp.asarray(g.frames, dtype=jnp.asarray(base.frames).dtype)
+        base = eqx.tree_at(
+            lambda s: (s.frames, s.errors), base, (frames, error_twists(frames, arm.frames))
+        )
+        sol = eqx.tree_at(lambda s: s.solution, sol, base) if robust else base
+    return sol, g
+
+
+def _degenerate_text(ident, generic: int) -> str:
+    return (
+        f"degenerate pose set: rank {ident.rank} of {ident.n_params} parameters from "
+        f"{ident.n_poses} poses, where as many poses spread over the joint ranges give "
+        f"{generic}; {generic - ident.rank} more combination(s) are lost to the pose set "
+        "(the unidentifiable directions are listed in the summary)"
+    )
+
+
+def _states_only(meas: Measurements) -> Measurements:
+    """``meas`` without its measured columns' poses (for the state plausibility checks)."""
+    return dataclasses.replace(meas, measured=None, full_poses=None, points=None, point_names=())
+
+
+def _auto_uncertainty(sol) -> dict[str, Any]:
+    """Standard deviations and 95 % intervals of the identified correction (first order, at
+    the estimated noise scales), per parameter."""
+    std = np.sqrt(np.clip(np.diag(sol.covariance), 0.0, None))
+    n_frames = sol.errors.shape[0]
+    values = list(np.asarray(sol.errors, dtype=float).reshape(-1))
+    for j in sol.calibrated_points:
+        values += list(np.asarray(sol.xyz[j]) - np.asarray(sol.start.xyz[j]))
+    params = {}
+    for k, name in enumerate(sol.param_names):
+        v = float(values[k])
+        s = float(std[k])
+        params[name] = {"value": v, "std": s, "ci95": [v - 1.96 * s, v + 1.96 * s]}
+    del n_frames
+    return {
+        "method": "first-order covariance of the identified correction at the estimated noise "
+        "scales and the final robust weights, restricted to the identifiable directions",
+        "noise_source": sol.noise_source,
+        "parameters": params,
+    }
+
+
+def _uncertainty_summary(unc: dict[str, Any]) -> str:
+    """One line per frame: the largest translation (mm) and rotation (rad) std."""
+    by_frame: dict[str, list[float]] = {}
+    lines = ["uncertainty (1 std of the identified correction, " + unc["noise_source"] + " noise):"]
+    for name, p in unc["parameters"].items():
+        frame, comp = name.rsplit(".", 1)
+        by_frame.setdefault(frame, [0.0, 0.0])
+        slot = 1 if comp.startswith("w") else 0
+        by_frame[frame][slot] = max(by_frame[frame][slot], p["std"])
+    for frame, (t, r) in by_frame.items():
+        lines.append(
+            f"  {frame}: translation <= {t:.3g} mm" + (f", rotation <= {r:.3g} rad" if r else "")
+        )
+    return "\n".join(lines)
+
+
 def _fmt(x: float | None, spec: str = ".4e") -> str:
     return "-" if x is None else format(x, spec)
 
@@ -378,11 +601,46 @@ _SOLVER_TEXT = {
 }
 
 
+def _auto_lines(r: dict) -> list[str]:
+    """The noise scales, registration and markers of an ``auto`` result."""
+    n = r["noise"]
+    parts = []
+    if n["position_mm"] is not None:
+        parts.append(f"pose position {n['position_mm']:.3g} mm")
+    if n["rotation_rad"] is not None:
+        parts.append(f"pose rotation {n['rotation_rad']:.3g} rad")
+    parts += [
+        f"{name} {v:.3g} mm" for name, v in (n.get("points_mm") or {}).items() if v is not None
+    ]
+    lines = [f"noise scales ({n['source']}, 1 std): " + ", ".join(parts)]
+    reg = r.get("registration") or {}
+    if reg.get("registered"):
+        placed = reg.get("markers_placed") or []
+        lines.append(
+            f"start: base frame registered to the measuring device's frame (point RMS "
+            f"{_fmt(reg['rms_before_mm'], '.4g')} -> {_fmt(reg['rms_after_mm'], '.4g')} mm)"
+            + (f"; markers placed: {', '.join(placed)}" if placed else "")
+        )
+    for name, mk in (r.get("markers") or {}).items():
+        if mk["calibrate"]:
+            xyz = ", ".join(f"{v:.4f}" for v in mk["calibrated"])
+            lines.append(f"marker {name}: calibrated position ({xyz}) mm in the tool frame")
+    return lines
+
+
 def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
     rob = r.get("robust")
     out = r.get("outliers") or {}
     scale = out.get("scale") or {}
-    if rob is None:
+    if r["solver"] == "auto":
+        text = (
+            "auto ({} loss, {} noise scales, Levenberg-Marquardt in the identifiable "
+            "directions)".format(
+                "Huber" if r.get("loss") == "huber" else "least-squares",
+                r["noise"]["source"],
+            )
+        )
+    elif rob is None:
         text = _SOLVER_TEXT[r["solver"]]
         if r["solver"] == "lm" and r["noise"] is not None:
             text += ", weighted"
@@ -409,7 +667,9 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
         f"model: {arm.name} ({model_label}); data: {data} ({r['n_poses']} poses)",
         f"solver: {text}",
     ]
-    if r["noise"] is not None:
+    if r["solver"] == "auto":
+        lines += _auto_lines(r)
+    elif r["noise"] is not None:
         n = r["noise"]
         lines.append(f"noise model: {n['position_mm']:g} mm, {n['rotation_rad']:g} rad")
     lines.append(f"  {'iter':>4}  {'step norm':>11}  {'dp [mm]':>11}  {'dR [rad]':>11}")
@@ -427,7 +687,9 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
     lines.append(
         f"{status} after {k} iteration{'s' if k != 1 else ''}: dp = "
         f"{_fmt(r['final']['delta_p_mm'], '.3g')} mm, dR = "
-        f"{_fmt(r['final']['delta_R_rad'], '.3g')} rad (Eqs. 20-21, fitted poses)"
+        f"{_fmt(r['final']['delta_R_rad'], '.3g')} rad (Eqs. 20-21, fitted poses"
+        + ("; dp over every measured position" if r["solver"] == "auto" else "")
+        + ")"
     )
     names = list(r["frames"])
     nan = float("nan")
@@ -437,7 +699,13 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
         names, rows, "identified frame errors dt = log(T^c T^-1) (Eqs. 15-18; v mm, w rad):"
     )
     lines.append(ident)
-    if scale:
+    if r["solver"] == "auto":
+        units = out.get("units") or []
+        lines.append(
+            f"outliers (z > {out['threshold']:.3g}, family-wise 1 %, in units of the noise "
+            "scales above): " + (", ".join(units) if units else "none")
+        )
+    elif scale:
         flagged = [x for x in r["residuals"] if x.get("outlier")]
         sp, sr = _fmt(scale["position_mm"], ".3g"), _fmt(scale["rotation_rad"], ".3g")
         lines.append(

@@ -40,6 +40,8 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "d_v": (0.0, 1e6),
     "d_w": (0.0, 3.2),
     "cable_noise": (0.0, 1e6),
+    "occlusion": (0.0, 0.95),
+    "marker_error": (0.0, 1e4),
 }
 """Allowed range (inclusive) of every numeric argument of the workflows and the command line,
 by argument name (``--max-iterations`` is ``max_iterations``). The bounds keep memory and time

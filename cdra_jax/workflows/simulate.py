@@ -20,10 +20,16 @@ from jax.typing import ArrayLike
 from matplotlib.figure import Figure
 
 from .. import lie
-from ..arm import Arm, apply_frame_errors
+from ..arm import Arm, apply_frame_errors, tool_pose
 from ..calibration import NoiseModel
 from ..compilation import cached_filter_jit
-from ..io import Measurements, load_frame_errors, save_frame_errors, save_measurements
+from ..io import (
+    Measurements,
+    load_frame_errors,
+    load_marker_truth,
+    save_frame_errors,
+    save_measurements,
+)
 from ..io.files import json_text
 from ..io.frame_errors import frame_errors_to_dict
 from ..io.results import package_version
@@ -131,6 +137,10 @@ def simulate(
     noise: NoiseModel | None = None,
     cables: bool = False,
     cable_noise: float | None = None,
+    points: bool = False,
+    occlusion: float = 0.0,
+    marker_error_mm: float = 0.0,
+    device_frame: ArrayLike | None = None,
     model_label: str | None = None,
 ) -> SimulationRun:
     """Simulate ``poses`` measured tool poses of a model with preset frame errors (Section V).
@@ -140,11 +150,23 @@ def simulate(
         poses: number of poses (>= 1).
         seed: PRNG seed of the errors, the states and the noise.
         errors: ``"random"`` (uniform in ``+-d_v`` mm / ``+-d_w`` rad per component),
-            ``"zero"``, a ``(K+1, 6)`` array, or the path of a frame-error JSON/TOML file.
+            ``"zero"``, a ``(K+1, 6)`` array, or the path of a frame-error JSON/TOML file
+            (``--truth`` of an earlier simulation: its ``markers`` table, when present, gives
+            the true marker positions too, so that a second data set shares the first's truth).
         d_v, d_w: ranges of the random errors (default 1 mm and 0.05 rad, the paper's).
         noise: Gaussian noise on the measured poses (std), or ``None`` for noise-free data.
         cables: write the states of modules with cables as cable lengths.
         cable_noise: std (mm) of Gaussian noise on each cable length (needs ``cables``).
+        points: measure points instead of full poses: the model's markers
+            (``measured.<marker>.x/y/z``), or the tool-frame origin (``measured.x/y/z``) for a
+            model without markers; the position noise std applies to each point.
+        occlusion: probability that a point is not seen in a row (an empty cell; every row
+            keeps at least one point).
+        marker_error_mm: markers with ``calibrate = true`` sit off their model position by a
+            uniform error in ``+-marker_error_mm`` per component (the truth records where).
+        device_frame: ``(6,)`` ``[x, y, z (mm), rx, ry, rz (rad)]``: the pose of the robot's
+            world frame in the measuring device's frame; measurements are written in the device
+            frame (default: the same frame).
         model_label: name of the model in the report.
     """
     check_range("poses", poses)
@@ -160,6 +182,7 @@ def simulate(
     cable_noise = check_range("cable_noise", 0.0 if cable_noise is None else cable_noise)
     arm, model_label = resolve_arm(model, model_label)
     X = np.zeros((len(arm.frame_names), 6))
+    given_markers: dict = {}
     if is_random:
         errors_text = f"random, uniform in +-{d_v:g} mm / +-{d_w:g} rad per component"
         errors_label = "random"
@@ -167,6 +190,7 @@ def simulate(
         errors_text = errors_label = "zero"
     elif isinstance(errors, str | os.PathLike):
         X = load_frame_errors(errors, arm)
+        given_markers = load_marker_truth(errors, arm)
         errors_text = f"from {errors}"
         errors_label = str(errors)
     else:
@@ -213,8 +237,66 @@ def simulate(
         comments.append(
             f"cable lengths (mm) for {', '.join(cable_lengths)}; noise std {cable_noise!r} mm"
         )
+    device = np.eye(4)
+    if device_frame is not None:
+        d = np.asarray(device_frame, dtype=float)
+        if d.shape != (6,) or not np.all(np.isfinite(d)):
+            raise ValueError(
+                f"device_frame: expected 6 finite numbers [x, y, z (mm), rx, ry, rz (rad)], "
+                f"got {device_frame!r}"
+            )
+        device = np.asarray(lie.from_xyz_rotvec(d[:3], d[3:]))
+        comments.append(
+            "measured in the device frame; robot world frame in it: "
+            f"xyz {d[:3].tolist()} mm, rotvec {d[3:].tolist()} rad"
+        )
+    check_range("occlusion", occlusion)
+    check_range("marker_error_mm", marker_error_mm, "marker_error")
+    if (occlusion or marker_error_mm) and not points:
+        raise ValueError("occlusion and marker_error_mm need points=True (measured points)")
+    measured = np.einsum("ij,mjk->mik", device, measured)
+    true_markers = {}
+    point_data = None
+    if points:
+        rng = np.random.default_rng([seed, 11])
+        names = [mk.name for mk in arm.markers] or ["origin"]
+        xyz = np.array([mk.xyz for mk in arm.markers]) if arm.markers else np.zeros((1, 3))
+        if given_markers and marker_error_mm:
+            raise ValueError(
+                "marker_error_mm draws the true marker positions; the errors file already "
+                "gives them (its markers table): leave one out"
+            )
+        for j, mk in enumerate(arm.markers):
+            if mk.name in given_markers:
+                xyz[j] = given_markers[mk.name]
+            elif mk.calibrate and marker_error_mm:
+                xyz[j] = xyz[j] + rng.uniform(-marker_error_mm, marker_error_mm, 3)
+            true_markers[mk.name] = xyz[j].tolist()
+        # Noise-free tool poses in the device frame, then isotropic noise on every point.
+        clean = device @ np.asarray(tool_pose(arm.with_frames(actual_frames), q))
+        pts = np.einsum("mij,pj->mpi", clean[:, :3, :3], xyz) + clean[:, None, :3, 3]
+        if noise is not None:
+            pts = pts + float(noise.position_mm) * rng.standard_normal(pts.shape)
+        hidden = rng.uniform(size=pts.shape[:2]) < occlusion
+        all_hidden = hidden.all(axis=1)
+        hidden[all_hidden, rng.integers(0, pts.shape[1], int(all_hidden.sum()))] = False
+        pts[hidden] = np.nan
+        point_data = {name: pts[:, j] for j, name in enumerate(names)}
+        comments.append(
+            f"points measured: {', '.join(names)}; occlusion probability {occlusion!r}"
+            + (
+                f"; calibrate markers off by up to {marker_error_mm!r} mm"
+                if marker_error_mm
+                else ""
+            )
+        )
     meas = Measurements.from_arrays(
-        arm, q, measured, comments=comments, cable_lengths=cable_lengths
+        arm,
+        q,
+        None if points else measured,
+        comments=comments,
+        cable_lengths=cable_lengths,
+        points=point_data,
     )
     truth = {
         "format": "cdra_jax.frame_errors",
@@ -239,6 +321,10 @@ def simulate(
         },
         "frames": frame_errors_to_dict(arm, X),
     }
+    if device_frame is not None:
+        truth["device_frame"] = device.tolist()
+    if true_markers:
+        truth["markers"] = true_markers
     lines = (
         f"model: {arm.name} ({model_label}); {poses} poses, seed {seed}",
         f"measurement noise: {noise_text}",

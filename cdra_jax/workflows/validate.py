@@ -1,9 +1,11 @@
 """The validate workflow: how well does a model predict measurements it was not fitted to?
 
-:func:`validate` predicts the tool pose of every row of a measurement file with a model (a
-model file, or a nominal model with a calibration result applied: Eq. 19) and compares it with
-the measured pose: the position error ``|p_meas - p_model|`` (mm) and the rotation error, the
-angle of ``R_meas^T R_model`` (rad), per row and pooled (``mean``, ``rms``, ``max``, ``n``).
+:func:`validate` predicts every measured row of a measurement file with a model (a model
+file, or a nominal model with a calibration result applied: Eq. 19) and compares: the position
+error ``|p_meas - p_model|`` (mm) of every measured position (a full pose's tool origin, each
+seen marker or tool-origin point), and the rotation error of full poses, the angle of
+``R_meas^T R_model`` (rad). Pooled (``mean``, ``rms``, ``max``, ``n``) over every measured
+position and every measured rotation; per row, the mean over the row's positions.
 With a calibration result the nominal model's errors are reported beside, so the gain of the
 calibration on held-out data reads off directly. The returned :class:`ValidationRun` is what
 ``cdra-jax validate`` prints and writes.
@@ -14,31 +16,57 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..arm import Arm, tool_pose
-from ..calibration import pose_errors
-from ..compilation import cached_filter_jit
+from ..arm import Arm
+from ..calibration.observations import make_observations, marker_table, raw_errors
 from ..io import Measurements, calibrated_arm_from_result, load_result
 from ..plots import validation_figure
 from .inputs import Data, Model, resolve_arm, resolve_measurements
 from .result import JsonResult
 
 
-def _errors(arm: Arm, q, measured) -> tuple[np.ndarray, np.ndarray]:
-    dp, dR = cached_filter_jit(_predicted_errors)(arm, q, measured)
-    return np.asarray(dp, dtype=float), np.asarray(dR, dtype=float)
+class PredictionErrors(NamedTuple):
+    """A model's errors on measured rows.
+
+    Attributes:
+        position_mm: ``(m, 1 + P)``: the full pose's position error (NaN without one), then
+            each point's (NaN where not seen).
+        rotation_rad: ``(m,)`` the full pose's rotation error (NaN without one).
+        names: the columns of ``position_mm``: ``pose`` then the point names.
+    """
+
+    position_mm: np.ndarray
+    rotation_rad: np.ndarray
+    names: tuple[str, ...]
+
+    @property
+    def per_row_position_mm(self) -> np.ndarray:
+        """``(m,)`` mean position error over each row's measured positions."""
+        e = self.position_mm
+        seen = np.isfinite(e)
+        return np.where(seen, e, 0.0).sum(-1) / np.maximum(seen.sum(-1), 1)
 
 
-def _predicted_errors(arm: Arm, q, measured):
-    return pose_errors(measured, tool_pose(arm, q))
+def prediction_errors(arm: Arm, meas: Measurements) -> PredictionErrors:
+    """The errors of ``arm``'s predictions on every measured position and rotation of ``meas``."""
+    obs = make_observations(arm, meas.q, meas.full_poses, meas.points)
+    xyz, _ = marker_table(arm, meas.point_names)
+    dpos, ang, e = (np.asarray(a, dtype=float) for a in raw_errors(arm.frames, xyz, obs))
+    pos = np.concatenate([np.linalg.norm(dpos, axis=-1)[:, None], np.linalg.norm(e, axis=-1)], 1)
+    return PredictionErrors(pos, ang, ("pose", *meas.point_names))
+
+
+def _num(x: float) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
 
 
 def pooled(errors: np.ndarray) -> dict[str, float | int]:
-    """``mean``, ``rms``, ``max`` and ``n`` of per-row errors (finite entries)."""
+    """``mean``, ``rms``, ``max`` and ``n`` of errors (the finite entries, any shape)."""
     e = np.asarray(errors, dtype=float)
     e = e[np.isfinite(e)]
     if e.size == 0:
@@ -53,16 +81,14 @@ def pooled(errors: np.ndarray) -> dict[str, float | int]:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class ValidationRun(JsonResult):
-    """Prediction errors of a model on measured poses.
+    """Prediction errors of a model on measured poses and points.
 
     Attributes:
         arm: the model that predicted (calibrated when a result was given).
         measurements: the held-out measurements.
-        position_error_mm: ``(m,)`` per-row position error (mm).
-        rotation_error_rad: ``(m,)`` per-row rotation error (rad).
-        reference_position_error_mm: ``(m,)`` the reference model's (the nominal model when a
-            result was applied, the ``compare`` model otherwise), or ``None``.
-        reference_rotation_error_rad: likewise for the rotation, or ``None``.
+        errors: the model's :class:`PredictionErrors`.
+        reference_errors: the reference model's (the nominal model when a result was applied,
+            the ``compare`` model otherwise), or ``None``.
         model_label: the model file (or ``embedded CDRA``).
         data_label: the measurement file.
         result_label: the calibration result applied, or ``None``.
@@ -73,47 +99,62 @@ class ValidationRun(JsonResult):
 
     arm: Arm
     measurements: Measurements
-    position_error_mm: np.ndarray
-    rotation_error_rad: np.ndarray
-    reference_position_error_mm: np.ndarray | None
-    reference_rotation_error_rad: np.ndarray | None
+    errors: PredictionErrors
+    reference_errors: PredictionErrors | None
     model_label: str
     data_label: str
     result_label: str | None = None
     reference: str = "nominal"
     reference_label: str | None = None
 
+    @property
+    def position_error_mm(self) -> np.ndarray:
+        """``(m,)`` per-row position error: the mean over the row's measured positions (mm)."""
+        return self.errors.per_row_position_mm
+
+    @property
+    def rotation_error_rad(self) -> np.ndarray:
+        """``(m,)`` per-row rotation error (rad; NaN in rows without a full pose)."""
+        return self.errors.rotation_rad
+
     def to_dict(self) -> dict[str, Any]:
-        """The validation mapping: ``position_error_mm`` and ``rotation_error_rad`` pooled
-        (``mean``, ``rms``, ``max``, ``n``), the nominal model's beside them when a result was
-        applied, and ``rows``, one entry per measured pose."""
-        ref = self.reference_position_error_mm
-        ref_rot = self.reference_rotation_error_rad
+        """The validation mapping: ``position_error_mm`` pooled over every measured position
+        (tool origins and points) and ``rotation_error_rad`` over every measured rotation
+        (``mean``, ``rms``, ``max``, ``n``), the reference model's beside them, and ``rows``,
+        one entry per measured row (with ``points`` where the file measures points)."""
+        ref = self.reference_errors
+        names = self.errors.names
         rows = []
         for i, pose in enumerate(self.measurements.pose_ids):
             row: dict[str, Any] = {
                 "pose": pose,
-                "position_mm": float(self.position_error_mm[i]),
-                "rotation_rad": float(self.rotation_error_rad[i]),
+                "position_mm": _num(self.errors.per_row_position_mm[i]),
+                "rotation_rad": _num(self.errors.rotation_rad[i]),
             }
-            if ref is not None and ref_rot is not None:
-                row[f"{self.reference}_position_mm"] = float(ref[i])
-                row[f"{self.reference}_rotation_rad"] = float(ref_rot[i])
+            if ref is not None:
+                row[f"{self.reference}_position_mm"] = _num(ref.per_row_position_mm[i])
+                row[f"{self.reference}_rotation_rad"] = _num(ref.rotation_rad[i])
+            if len(names) > 1:
+                row["points"] = {
+                    name: _num(self.errors.position_mm[i, j])
+                    for j, name in enumerate(names)
+                    if j > 0 and np.isfinite(self.errors.position_mm[i, j])
+                }
             rows.append(row)
         out: dict[str, Any] = {
             "format": "cdra_jax.validation",
             "inputs": {"model": self.model_label, "data": self.data_label},
             "model": self.arm.name,
-            "position_error_mm": pooled(self.position_error_mm),
-            "rotation_error_rad": pooled(self.rotation_error_rad),
+            "position_error_mm": pooled(self.errors.position_mm),
+            "rotation_error_rad": pooled(self.errors.rotation_rad),
         }
         if self.result_label is not None:
             out["inputs"]["result"] = self.result_label
-        if ref is not None and ref_rot is not None:
+        if ref is not None:
             out[self.reference] = {
                 "model": self.reference_label,
-                "position_error_mm": pooled(ref),
-                "rotation_error_rad": pooled(ref_rot),
+                "position_error_mm": pooled(ref.position_mm),
+                "rotation_error_rad": pooled(ref.rotation_rad),
             }
         out["rows"] = rows
         return out
@@ -162,7 +203,7 @@ def validate(
     model_label: str | None = None,
     data_label: str | None = None,
 ) -> ValidationRun:
-    """Predict the measured tool poses of ``data`` with a model and report the errors.
+    """Predict the measured tool poses and points of ``data`` with a model; report the errors.
 
     Args:
         model: an :class:`~cdra_jax.arm.Arm`, a model TOML path, or ``None`` (the embedded
@@ -181,8 +222,8 @@ def validate(
     """
     nominal, model_label = resolve_arm(model, model_label)
     meas, data_label, _ = resolve_measurements(data, nominal, data_label)
-    if meas.measured is None:
-        raise ValueError(f"{data_label}: no measured tool poses (measured.* columns) to compare")
+    if not meas.has_measurements:
+        raise ValueError(f"{data_label}: no measured tool poses or points (measured.* columns)")
     if result is not None and compare is not None:
         raise ValueError("give either result (applied to the model) or compare, not both")
     result_label = None
@@ -194,11 +235,11 @@ def validate(
             result_label = str(result)
             result = load_result(result)
         arm = calibrated_arm_from_result(result, nominal)
-    dp, dR = _errors(arm, meas.q, meas.measured)
-    ndp = ndR = None
+    errors = prediction_errors(arm, meas)
+    ref = None
     reference, reference_label = "nominal", None
     if result is not None:
-        ndp, ndR = _errors(nominal, meas.q, meas.measured)
+        ref = prediction_errors(nominal, meas)
         reference_label = model_label
     elif compare is not None:
         other, reference_label = resolve_arm(compare)
@@ -207,18 +248,25 @@ def validate(
                 f"compare {reference_label}: its module states {other.state_names} differ from "
                 f"the model's {nominal.state_names}"
             )
-        ndp, ndR = _errors(other, meas.q, meas.measured)
+        other = _with_markers_of(other, nominal, meas)
+        ref = prediction_errors(other, meas)
         reference = "compare"
     return ValidationRun(
         arm=arm,
         measurements=meas,
-        position_error_mm=dp,
-        rotation_error_rad=dR,
-        reference_position_error_mm=ndp,
-        reference_rotation_error_rad=ndR,
+        errors=errors,
+        reference_errors=ref,
         model_label=model_label,
         data_label=data_label,
         result_label=result_label,
         reference=reference,
         reference_label=reference_label,
     )
+
+
+def _with_markers_of(other: Arm, model: Arm, meas: Measurements) -> Arm:
+    """``other`` with ``model``'s markers for those it does not declare (a nominal model
+    compared with a calibrated one that carries the markers)."""
+    have = {mk.name for mk in other.markers}
+    missing = [mk for mk in model.markers if mk.name not in have and mk.name in meas.point_names]
+    return other.with_markers([*other.markers, *missing]) if missing else other
