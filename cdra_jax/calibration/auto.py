@@ -114,6 +114,11 @@ class AutoSolution:
         param_names: frame parameters then ``<marker>.x/y/z`` of the calibrated markers.
         iterations: accepted Levenberg-Marquardt steps over all rounds.
         gauge: the move onto the nominal gauge (:mod:`.gauge`).
+        gauge_reference: ``"nominal"``: no component of the correction along the nominal
+            model's unidentifiable directions; ``"start"``: along those of the start model (the
+            nominal model with the base registered and rough markers placed), where no exact
+            move reaches the nominal gauge (a registration or marker trade-off that is not a
+            symmetry of the model).
     """
 
     frames: np.ndarray
@@ -146,6 +151,7 @@ class AutoSolution:
     param_names: tuple[str, ...]
     iterations: int
     gauge: GaugeFix
+    gauge_reference: str
 
 
 def parameter_names(arm: Arm, point_names: Sequence[str], calibrated: Sequence[int]):
@@ -240,6 +246,11 @@ def calibrate_auto(
     B = Vt[:rank].T / s_full[:rank]
     null_space = Vt[rank:]
 
+    n_units = int(pose_mask.sum()) * 2 + int(seen.sum())
+    threshold = float(math.sqrt(scipy.stats.chi2.isf(FAMILY_ALPHA / max(n_units, 1), 3)))
+    # Units beyond the outlier bound are left out of the scale estimates (a gross error would
+    # otherwise inflate its kind's scale and hide itself).
+    keep_pos, keep_rot, keep_pts = pose_mask.copy(), pose_mask.copy(), seen.copy()
     u = np.zeros(rank)
     history: list[dict] = []
     total_steps = 0
@@ -277,8 +288,13 @@ def calibrate_auto(
         h = _leverage(Ju)
         old = (sp, sr, s_pts.copy(), w_pos.copy(), w_rot.copy(), w_pts.copy())
         if not given:
-            sp, sr, s_pts = _variance_components(r, h, obs, sp, sr, s_pts, pose_mask, seen)
+            sp, sr, s_pts = _variance_components(
+                r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, keep_pts
+            )
         z_pos, z_rot, z_pts = _standardised(r, h, obs, w_pos, w_rot, w_pts)
+        keep_pos = pose_mask & ~(z_pos > threshold)
+        keep_rot = pose_mask & ~(z_rot > threshold)
+        keep_pts = seen & ~(z_pts > threshold)
         if loss == "huber":
             w_pos = _huber(z_pos)
             w_rot = _huber(z_rot)
@@ -292,8 +308,11 @@ def calibrate_auto(
             ok, result = False, "max_iterations_reached"
     theta = B @ u
     frames, xyz = (np.asarray(a) for a in apply_parameters(theta, frames0, xyz0, calibrated))
+    # The nominal gauge where an exact move reaches it; else the start model's, which the
+    # search in the start's identifiable subspace meets by construction.
     gauge = to_nominal_gauge(frames, xyz, frames_nom, xyz_nom, obs, calibrated)
     frames, xyz = gauge.frames, gauge.xyz
+    gauge_reference = "nominal" if gauge.exact else "start"
     # Final whitened system at the final scales and weights: covariance and z.
     r, J = lin(theta)
     Ju = J @ B
@@ -306,8 +325,6 @@ def calibrate_auto(
     except np.linalg.LinAlgError:
         cov_u = np.linalg.pinv(Ju.T @ Ju)
     cov = B @ cov_u @ B.T
-    n_units = int(pose_mask.sum()) * 2 + int(seen.sum())
-    threshold = float(math.sqrt(scipy.stats.chi2.isf(FAMILY_ALPHA / max(n_units, 1), 3)))
     if history[-1]["position_rms_mm"] < EXACT_FIT_MM and not given:
         # An exact fit leaves the scales at the rounding level, where their ratio means nothing:
         # the identifiability and conditioning are then reported at the initial scales.
@@ -350,6 +367,7 @@ def calibrate_auto(
         param_names=parameter_names(arm, point_names, calibrated),
         iterations=total_steps,
         gauge=gauge,
+        gauge_reference=gauge_reference,
     )
 
 
@@ -416,15 +434,16 @@ def _unit_rows(obs: Observations):
     return pos, rot, pts
 
 
-def _variance_components(r, h, obs, sp, sr, s_pts, pose_mask, seen):
-    """One Förstner update of the scales (module docstring)."""
+def _variance_components(r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, seen):
+    """One Förstner update of the scales (module docstring) over the units kept."""
     pos, rot, pts = _unit_rows(obs)
     red = 1.0 - h
     groups = []  # (sum of w e^2 in the group's unit, redundancy)
-    ss_pos = float(np.sum((r[pos[pose_mask]] * sp) ** 2))
-    rd_pos = float(np.sum(red[pos[pose_mask]]))
-    ss_rot = float(np.sum((r[rot[pose_mask]] * sr) ** 2))
-    rd_rot = float(np.sum(red[rot[pose_mask]]))
+    pose_mask = keep_pos | keep_rot
+    ss_pos = float(np.sum((r[pos[keep_pos]] * sp) ** 2))
+    rd_pos = float(np.sum(red[pos[keep_pos]]))
+    ss_rot = float(np.sum((r[rot[keep_rot]] * sr) ** 2))
+    rd_rot = float(np.sum(red[rot[keep_rot]]))
     ss_pts = np.array(
         [np.sum((r[pts[:, j][seen[:, j]]] * s_pts[j]) ** 2) for j in range(len(s_pts))]
     )

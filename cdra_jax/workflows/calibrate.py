@@ -474,7 +474,7 @@ def _calibrate_auto(
         warnings=stored,
         observations=obs,
     )
-    result["gauge"] = _gauge_dict(sol.gauge)
+    result["gauge"] = _gauge_dict(sol.gauge, sol.gauge_reference)
     implausible = implausible_frame_errors_warning(result)
     if implausible is not None:
         result["warnings"].append(implausible)
@@ -501,16 +501,22 @@ def _calibrate_auto(
 
 
 GAUGE_TEXT = (
-    "the identified correction (error twists w.r.t. the nominal frames, marker corrections) "
-    "has no component along the unidentifiable directions of the nominal model; along them "
-    "the result keeps the nominal values"
+    "the identified correction (error twists w.r.t. the reference frames, marker corrections) "
+    "has no component along the unidentifiable directions of the reference model; along them "
+    "the result keeps the reference values. The reference is the nominal model, or, where the "
+    "auto solver registered the base to the measuring device and no exact move along the "
+    "unidentifiable directions reaches the nominal gauge, that registered start model"
 )
 """How every solver's result fixes what the data cannot determine
 (:mod:`cdra_jax.calibration.gauge`)."""
 
 
-def _gauge_dict(g) -> dict[str, Any]:
-    return {"definition": GAUGE_TEXT, "exact": bool(g.exact), "residual": float(g.residual)}
+def _gauge_dict(g, reference: str = "nominal") -> dict[str, Any]:
+    return {
+        "definition": GAUGE_TEXT,
+        "reference": reference if g.exact or reference == "start" else "solver",
+        "residual_to_nominal": float(g.residual),
+    }
 
 
 def _in_nominal_gauge(arm: Arm, meas: Measurements, sol: Any):
