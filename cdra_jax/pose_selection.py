@@ -78,9 +78,10 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from . import lie
 from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
-from .calibration.model import NoiseModel, calibration_jacobian, whitening
+from .calibration.model import NoiseModel, calibration_jacobian, tool_points, whitening
 from .calibration.validation import MIN_POSES, require_finite_states
 from .compilation import filter_jit, jit
 from .simulation import StateSampler, sample_poses
@@ -132,10 +133,24 @@ def information_blocks(arm: Arm, q: ArrayLike, noise: NoiseModel | None) -> Arra
     """Per-pose (whitened) Jacobian blocks ``A_i = G_i D_i``: ``(N, dof) -> (N, 6, n)``.
 
     ``noise=None`` gives the unweighted blocks of Eq. 8. Whitening uses the model's tool poses.
+
+    A model with ``[[markers]]`` is measured by its markers: each pose then contributes the
+    rows of its ``P`` marker positions, ``[I, -hat(p_j)] D_i / s_pos`` (``p_j`` the marker's
+    world position), ``(N, 3 P, n)``: the frame parameters as seen by the points (the marker
+    positions themselves are not part of the design).
     """
     dtype = jnp.asarray(arm.frames).dtype
     tool, after = chain(arm.frames, module_poses(arm, jnp.asarray(q, dtype)))
     A = calibration_jacobian(after)
+    if arm.markers:
+        xyz = jnp.asarray([mk.xyz for mk in arm.markers], dtype)
+        p = tool_points(tool, xyz)  # (N, P, 3)
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), p.shape + (3,))
+        rows = jnp.concatenate([eye, -lie.hat3(p)], axis=-1)  # (N, P, 3, 6)
+        A = jnp.einsum("npij,njk->npik", rows, A).reshape(A.shape[0], -1, A.shape[-1])
+        if noise is not None:
+            A = A / jnp.asarray(noise.position_mm, dtype)
+        return A
     G = whitening(tool, noise)
     return A if G is None else G @ A
 
@@ -433,7 +448,34 @@ def _reference_weight(
     pos = jnp.asarray(noise.position_mm, dtype)
     if pos.ndim:
         raise ValueError("criterion 'i-opt' needs a scalar noise.position_mm (one device)")
+    if arm.markers:
+        # Every marker's position rows, averaged over the markers: E[dp^2] per point.
+        n_pts = len(arm.markers)
+        P = jnp.einsum("hai,ir->har", blocks, jnp.asarray(basis, dtype)) * pos
+        return jnp.einsum("har,has->rs", P, P) / (blocks.shape[0] * n_pts)
     return _prediction_weight(blocks, jnp.asarray(basis, dtype), pos)
+
+
+def marker_prediction_rms(
+    arm: Arm,
+    q: ArrayLike,
+    noise: NoiseModel,
+    reference: ArrayLike,
+    rcond: float | None = None,
+) -> float:
+    """Predicted ``sqrt(E[dp^2])`` (mm, first order) of the marker positions at the reference
+    states after a calibration of ``arm``'s frames from its markers measured at ``q``:
+    ``sqrt(tr(Q M^-1))`` on the identifiable subspace of ``q``; ``inf`` where a reference
+    marker position sees a direction that ``q`` leaves unidentified."""
+    A = information_blocks(arm, np.asarray(q, dtype=float), noise)
+    W = identifiable_basis(A, rcond)
+    ref = information_blocks(arm, np.asarray(reference, dtype=float), noise)
+    if _sees_outside(ref, W):
+        return float("inf")
+    B = jnp.einsum("nai,ir->nar", A, jnp.asarray(W, A.dtype))
+    M = jnp.einsum("nar,nas->rs", B, B)
+    Q = _reference_weight(arm, np.asarray(reference, dtype=float), noise, W)
+    return float(jnp.sqrt(jnp.trace(jnp.linalg.solve(M, Q))))
 
 
 def select_from_pool(
@@ -498,7 +540,9 @@ def select_from_pool(
     log_det = float(log_det_information(A[idx], W))
     log_det_greedy = float(log_det_information(A[np.asarray(idx_greedy)], W))
     rms = float("nan")
-    if noise is not None:
+    if noise is not None and arm.markers:
+        rms = marker_prediction_rms(arm, pool[idx], noise, reference, rcond)
+    elif noise is not None:
         # The uncertainty module's prediction from the selected set's own Jacobian: equal to
         # sqrt(tr(Q M^-1)) when the set identifies W and the reference sees nothing outside
         # it, inf where the set leaves a direction that moves a reference position unidentified.

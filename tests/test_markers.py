@@ -351,3 +351,20 @@ def test_the_guard_fires_when_an_unweighted_fit_is_worse_than_nominal(tmp_path):
                      "--solver", "paper"]) == cli.EXIT_UNTRUSTED  # fmt: skip
     assert json.loads((tmp_path / "r.json").read_text())["trusted"] is False
     assert workflows.calibrate(None, path).trusted
+
+
+def test_plan_poses_for_a_model_measured_by_markers(arm):
+    plan = workflows.plan_poses(arm, 6, noise=NoiseModel(0.05, 1e-3), pool=200, seed=1)
+    assert plan.states.shape == (6, arm.dof)
+    assert np.isfinite(plan.expected_dp_mm) and np.isnan(plan.expected_dR_rad)
+    # the planned poses predict the marker positions better than the median random set
+    assert plan.expected_dp_mm < np.median(plan.random_dp_mm)
+    assert "(marker positions)" in plan.report()
+    assert plan.to_dict()["expected_dR_rad"] is None
+
+
+def test_diagnose_says_it_needs_full_poses(arm, truth):
+    q, _, pts = _points(truth, 12, key=9)
+    meas = Measurements.from_arrays(arm, q, points={"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2]})
+    with pytest.raises(ValueError, match="diagnose needs full tool poses"):
+        workflows.diagnose(arm, meas)

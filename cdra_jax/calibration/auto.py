@@ -42,8 +42,8 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.stats
 
-from ..arm import Arm, error_twists
-from .gauge import GaugeFix, to_nominal_gauge
+from ..arm import Arm
+from .gauge import GaugeFix, correction, to_nominal_gauge
 from .linear import default_rcond
 from .model import NoiseModel
 from .observations import (
@@ -338,7 +338,9 @@ def calibrate_auto(
     nan = np.nan
     return AutoSolution(
         frames=frames,
-        errors=np.asarray(error_twists(frames, frames_nom)),
+        errors=correction(frames, xyz, frames_nom, xyz_nom, ())[: 6 * frames.shape[0]].reshape(
+            -1, 6
+        ),
         xyz=xyz,
         point_names=point_names,
         calibrated_points=calibrated,

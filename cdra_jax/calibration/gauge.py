@@ -29,12 +29,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import numpy as np
 
 from ..arm import error_twists
 from .linear import default_rcond
 from .observations import Observations, apply_parameters, linearise, predictions
 
+_error_twists = jax.jit(error_twists)
 EXACT_MM = 1e-9
 EXACT_RAD = 1e-12
 NEWTON_STEPS = 6
@@ -90,7 +92,7 @@ def correction(
     calibrated: tuple[int, ...],
 ) -> np.ndarray:
     """``theta``: the error twists w.r.t. the nominal frames and the marker corrections."""
-    X = np.asarray(error_twists(frames, frames_nom)).reshape(-1)
+    X = np.asarray(_error_twists(frames, frames_nom)).reshape(-1)
     dx = [np.asarray(xyz[j]) - np.asarray(xyz_nom[j]) for j in calibrated]
     return np.concatenate([X, *dx]) if dx else X
 

@@ -66,7 +66,7 @@ def make_observations(
 ) -> Observations:
     """:class:`Observations` from module states ``q (m, dof)``, measured full poses ``(m, 4, 4)``
     (NaN rows where none) and measured points ``(m, P, 3)`` (NaN where not seen)."""
-    q = jnp.asarray(q, dtype=jnp.float64)
+    q = np.asarray(q, dtype=float)
     m = q.shape[0]
     if full_poses is None:
         full_poses = np.full((m, 4, 4), np.nan)
@@ -79,12 +79,15 @@ def make_observations(
     seen = np.all(np.isfinite(P), axis=-1)
     P = np.where(seen[..., None], P, 0.0)
     return Observations(
-        poses=module_poses(arm, q),
+        poses=_module_poses(arm, q),
         full_poses=jnp.asarray(T),
         pose_mask=jnp.asarray(mask),
         points=jnp.asarray(P),
         seen=jnp.asarray(seen),
     )
+
+
+_module_poses = eqx.filter_jit(module_poses)
 
 
 def marker_table(arm: Arm, point_names: Sequence[str]) -> tuple[np.ndarray, tuple[int, ...]]:
@@ -102,6 +105,7 @@ def marker_table(arm: Arm, point_names: Sequence[str]) -> tuple[np.ndarray, tupl
     return xyz, tuple(calibrated)
 
 
+@eqx.filter_jit
 def apply_parameters(
     theta: Array, frames0: Array, xyz0: Array, calibrated: tuple[int, ...]
 ) -> tuple[Array, Array]:
@@ -116,6 +120,7 @@ def apply_parameters(
     return frames, xyz0
 
 
+@eqx.filter_jit
 def predictions(frames: Array, xyz: Array, obs: Observations) -> tuple[Array, Array]:
     """Model tool poses ``(m, 4, 4)`` and model points ``(m, P, 3)`` (world frame, mm)."""
     tool, _ = chain(frames, obs.poses)

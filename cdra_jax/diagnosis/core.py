@@ -1,6 +1,6 @@
 """Find the missing physics: detect, locate, attribute and refit (design.md, 'diagnose').
 
-1. **Fit** the 24 frame errors by the weighted Gauss-Newton of the paper
+1. **Fit** the 6 (K+1) frame errors (24 for the CDRA) by the weighted Gauss-Newton of the paper
    (:func:`cdra_jax.calibration.calibrate_paper` with the noise model).
 2. **Detect** whether that fit is consistent with the stated noise: the K-fold held-out
    chi-square ``Q`` with the predictive covariance ``I + D_f C D_f^T`` and its exact null
@@ -106,8 +106,14 @@ def _check(arm: Arm, meas: Measurements, folds: int, alpha: float) -> None:
         )
     if meas.measured is None:
         raise ValueError(
-            f"{meas.source}: no measured tool poses (measured.x ... columns); a diagnosis needs "
-            "them"
+            f"{meas.source}: "
+            + (
+                "these data measure points (markers or tool positions without orientation); "
+                "diagnose needs full tool poses in every row (calibrate, validate and "
+                "plan-poses work with points)"
+                if meas.has_measurements
+                else "no measured tool poses (measured.x ... columns); a diagnosis needs them"
+            )
         )
     if tuple(meas.state_names) != tuple(arm.state_names):
         raise ValueError(
@@ -452,6 +458,7 @@ def diagnose(
             "folds": int(fold.max() + 1),
             "seed": seed,
             "n_poses": m,
+            "n_frame_params": arm.n_params,
             "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": floor[1]},
             "rounding_floor": {"position_mm": floor_phys[0], "rotation_rad": floor_phys[1]},
             "noise_suggested": _suggested_noise(r, df_resid, used_noise),

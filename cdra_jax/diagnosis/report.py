@@ -26,7 +26,8 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
     floor = det["noise_floor"]
     t = d.tests
     lines = [
-        f"Geometric calibration (24 frame errors, weighted Gauss-Newton) of {det['n_poses']} "
+        f"Geometric calibration ({det.get('n_frame_params', '')} frame-error parameters, "
+        f"weighted Gauss-Newton) of {det['n_poses']} "
         f"poses, {det['folds']}-fold cross-validated: held-out position error "
         f"{b.delta_p_mm:.3g} mm, rotation {b.delta_R_rad:.3g} rad; noise floor "
         f"{floor['delta_p_mm']:.3g} mm, {floor['delta_R_rad']:.3g} rad "

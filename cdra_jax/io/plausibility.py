@@ -108,6 +108,9 @@ def check_plausibility(arm: Arm, meas: Measurements) -> tuple[str, ...]:
             )
         warnings += _check_positions(meas, T_model)
         warnings += _check_orientations(meas, T_model)
+    elif meas.points is not None and meas.m > 0:
+        T_model = np.asarray(_tool_pose(arm, jnp.asarray(meas.q)), dtype=float)
+        _check_point_scale(arm, meas, T_model)
     warnings += _check_repeats(meas)
     return tuple(warnings)
 
@@ -160,6 +163,40 @@ def _check_states(arm: Arm, meas: Measurements) -> list[str]:
 
 def _spread(p: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(p - np.median(p, axis=0), axis=-1)))
+
+
+def _check_point_scale(arm: Arm, meas: Measurements, T_model: np.ndarray) -> None:
+    """Measured points (in any device frame) must spread like the model's: the spread is
+    independent of where the device stands, so a factor of 1000, 10 or 25.4 is a unit error."""
+    assert meas.points is not None
+    for j, name in enumerate(meas.point_names):
+        seen = np.all(np.isfinite(meas.points[:, j]), axis=-1)
+        if seen.sum() < 3:
+            continue
+        x = np.zeros(3) if name == "origin" else np.asarray(arm.marker(name).xyz)
+        p_model = (T_model[seen, :3, :3] @ x) + T_model[seen, :3, 3]
+        s_model, s_meas = _spread(p_model), _spread(meas.points[seen, j])
+        if s_model < _MIN_SPREAD_MM:
+            continue
+        ratio = s_meas / s_model
+        if 1.0 / POSITION_SCALE_TOL <= ratio <= POSITION_SCALE_TOL:
+            continue
+        column = "measured.x" if name == "origin" else f"measured.{name}.x"
+        for factor, unit, fix in _UNITS:
+            if ratio > 0 and abs(math.log(ratio * factor)) < math.log(1.25):
+                raise MeasurementFileError(
+                    meas.source,
+                    f"the measured points {name!r} look like {unit}: median spread "
+                    f"{s_meas:.4g} vs {s_model:.4g} mm predicted by the model; {fix}?",
+                    column=column,
+                )
+        raise MeasurementFileError(
+            meas.source,
+            f"the measured points {name!r}: median spread {s_meas:.4g} is {ratio:.3g} times the "
+            f"{s_model:.4g} mm predicted by the model: wrong units (the file must be in mm), "
+            "or a model of another arm?",
+            column=column,
+        )
 
 
 def _check_positions(meas: Measurements, T_model: np.ndarray) -> list[str]:

@@ -425,7 +425,9 @@ def _calibrate_auto(
     """The ``auto`` solver's calibration (:func:`cdra_jax.calibration.calibrate_auto`)."""
     # The state checks first; the measured poses are checked against the nominal model placed
     # in the measuring device's frame by the registration (they may lie anywhere in it).
-    plausibility = list(check_plausibility(arm, _states_only(meas)))
+    plausibility = list(
+        check_plausibility(arm, meas if meas.measured is None else _states_only(meas))
+    )
     kwargs: dict[str, Any] = {}
     if max_iterations is not None:
         kwargs["max_iterations"] = max_iterations

@@ -26,7 +26,13 @@ from ..arm import Arm
 from ..calibration import NoiseModel
 from ..io.files import write_text_atomic
 from ..plots import new_figure
-from ..pose_selection import CRITERIA, DEFAULT_CRITERION, DEFAULT_POOL_SIZE, select_poses
+from ..pose_selection import (
+    CRITERIA,
+    DEFAULT_CRITERION,
+    DEFAULT_POOL_SIZE,
+    marker_prediction_rms,
+    select_poses,
+)
 from ..uncertainty import predicted_pose_covariance
 from .inputs import Model, check_range, check_seed, resolve_arm
 from .result import JsonResult
@@ -121,7 +127,7 @@ class PosePlan(JsonResult):
             "log_det": float(sel.log_det),
             "o1": float(sel.o1),
             "expected_dp_mm": self.expected_dp_mm,
-            "expected_dR_rad": self.expected_dR_rad,
+            "expected_dR_rad": None if np.isnan(self.expected_dR_rad) else self.expected_dR_rad,
             "random_dp_mm_median": float(np.median(self.random_dp_mm)),
             "states": {n: self.states[:, j].tolist() for j, n in enumerate(self.arm.state_names)},
         }
@@ -137,8 +143,12 @@ class PosePlan(JsonResult):
                 f"exchanges), rank {sel.rank}, O1 {sel.o1:.4g}",
                 f"expected RMS accuracy over the workspace with noise "
                 f"{float(self.noise.position_mm)} mm / {float(self.noise.rotation_rad)} rad:",
-                f"  planned poses: dp {self.expected_dp_mm:.4g} mm, dR {self.expected_dR_rad:.4g} "
-                "rad",
+                (
+                    f"  planned poses: dp {self.expected_dp_mm:.4g} mm (marker positions)"
+                    if self.arm.markers
+                    else f"  planned poses: dp {self.expected_dp_mm:.4g} mm, dR "
+                    f"{self.expected_dR_rad:.4g} rad"
+                ),
                 f"  {n} random poses (median of {len(self.random_dp_mm)} draws): dp "
                 f"{np.median(self.random_dp_mm):.4g} mm",
             ]
@@ -190,16 +200,20 @@ def plan_poses(
     sel = select_poses(
         arm, count, noise, key=jax.random.PRNGKey(seed), pool_size=pool, criterion=criterion
     )
-    # Expected accuracy over the pool (a sample of the workspace), selected vs random poses.
-    exp_sel = predicted_pose_covariance(arm, sel.states, noise, sel.pool)
+    # Expected accuracy over the pool (a sample of the workspace), selected vs random poses:
+    # of the tool pose, or, for a model measured by markers, of the marker positions.
     rng = np.random.default_rng(seed % 2**64)  # numpy takes no negative seeds
+
+    def expected_dp(states) -> tuple[float, float]:
+        if arm.markers:
+            return marker_prediction_rms(arm, states, noise, sel.pool), float("nan")
+        pred = predicted_pose_covariance(arm, states, noise, sel.pool)
+        return float(pred.expected_delta_p), float(pred.expected_delta_R)
+
+    exp_dp, exp_dR = expected_dp(sel.states)
     rand = np.array(
         [
-            float(
-                predicted_pose_covariance(
-                    arm, sel.pool[rng.choice(len(sel.pool), count, replace=False)], noise, sel.pool
-                ).expected_delta_p
-            )
+            expected_dp(sel.pool[rng.choice(len(sel.pool), count, replace=False)])[0]
             for _ in range(RANDOM_DRAWS)
         ]
     )
@@ -207,8 +221,8 @@ def plan_poses(
         arm=arm,
         states=np.asarray(sel.states),
         selection=sel,
-        expected_dp_mm=float(exp_sel.expected_delta_p),
-        expected_dR_rad=float(exp_sel.expected_delta_R),
+        expected_dp_mm=exp_dp,
+        expected_dR_rad=exp_dR,
         random_dp_mm=rand,
         criterion=criterion,
         pool=pool,
