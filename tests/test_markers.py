@@ -122,6 +122,9 @@ def _header(arm, extra):
 
 
 STATES = "0.1,0.2,-0.1,1.2,0.0,0.1,-0.1"
+A_COLS = ["measured.a.x", "measured.a.y", "measured.a.z"]
+Q_COLS = ["measured.q.x", "measured.q.y", "measured.q.z"]
+POSE_COLS = [f"measured.{c}" for c in ("x", "y", "z", "rx", "ry", "rz")]
 
 
 def test_points_occlusions_and_mixed_rows_parse_and_round_trip(arm):
@@ -150,14 +153,14 @@ def test_points_occlusions_and_mixed_rows_parse_and_round_trip(arm):
 @pytest.mark.parametrize(
     ("header", "row", "expected"),
     [
-        (["measured.a.x", "measured.a.y", "measured.a.z"], "1,,3", "line 2, column 'measured.a.y': empty cell"),
-        (["measured.a.x", "measured.a.y", "measured.a.z"], ",,", "line 2, column 'measured.a.x': the row measures nothing"),
-        (["measured.q.x", "measured.q.y", "measured.q.z"], "1,2,3", "column 'measured.q.x': unknown column"),
-        (["measured.a.x", "measured.a.y"], "1,2", "column 'measured.a.z': missing column measured.a.z"),
-        (["measured.x", "measured.y", "measured.z", "measured.rx", "measured.ry", "measured.rz"], ",,,0.1,0,0", "line 2, column 'measured.x': a measured orientation needs"),
-        (["measured.a.x", "measured.a.y", "measured.a.z"], "1,x,3", "line 2, column 'measured.a.y': not a number"),
+        (A_COLS, "1,,3", "line 2, column 'measured.a.y': empty cell"),
+        (A_COLS, ",,", "line 2, column 'measured.a.x': the row measures nothing"),
+        (Q_COLS, "1,2,3", "column 'measured.q.x': unknown column"),
+        (A_COLS[:2], "1,2", "column 'measured.a.z': missing column measured.a.z"),
+        (POSE_COLS, ",,,0.1,0,0", "line 2, column 'measured.x': a measured orientation needs"),
+        (A_COLS, "1,x,3", "line 2, column 'measured.a.y': not a number"),
     ],
-)  # fmt: skip
+)
 def test_bad_point_cells_name_file_line_and_column(arm, header, row, expected):
     text = _header(arm, header) + f"\np1,{STATES},{row}\n"
     with pytest.raises(MeasurementFileError) as info:

@@ -2,8 +2,8 @@
 
 Notation: ``r (N,)`` is the whitened residual (``N = 6 m``, unit variance per entry under the
 stated noise model) at a fit, ``A (N, k)`` the whitened Jacobian of the fitted parameters
-(the 6 (K+1) frame errors, 24 for the CDRA, plus a candidate's physical parameters). Rows come in blocks of 6 per
-pose; cross-validation folds split poses, never the 6 rows of one pose.
+(the 6 (K+1) frame errors, 24 for the CDRA, plus a candidate's physical parameters). Rows come
+in blocks of 6 per pose; cross-validation folds split poses, never the 6 rows of one pose.
 
 Held-out test. For fold ``f`` the parameters are refitted on the other folds (minimum-norm
 least squares), ``x_-f = A_-f^+ r_-f``, and the held-out residual ``e_f = r_f - A_f x_-f`` has,

@@ -26,7 +26,8 @@ Columns (any order; the order is kept when the file is written back):
   ``payload_kg``, ``temperature_c``.
 
 Every cell except ``pose`` and the empty cells of measured points must be a finite number in
-decimal notation (``1_0`` is not read as 10) of magnitude at most :data:`MAX_MAGNITUDE`; a pose identifier holds no control characters.
+decimal notation (``1_0`` is not read as 10) of magnitude at most :data:`MAX_MAGNITUDE`; a pose
+identifier holds no control characters.
 Errors are :class:`MeasurementFileError` (a ``ValueError``) naming the file, the line and the
 column. The reader accepts any number of rows; :func:`check_pose_count` enforces the
 calibration's minimum of 4 distinct module configurations (Section IV, Eq. 9).
