@@ -21,7 +21,9 @@ residual of :mod:`.observations`:
 4. **Robust loss**: Huber weights per observed unit (one point, or the position or the rotation
    of one full pose), ``w = min(1, c / z)`` with ``z`` the unit's standardised residual norm
    (divided by ``sqrt(1 - h)``) and ``c`` the 95 % point of the chi distribution with 3 degrees
-   of freedom (:data:`UNIT_HUBER_C`), by iteratively reweighted least squares.
+   of freedom (:data:`UNIT_HUBER_C`), by iteratively reweighted least squares; from the second
+   round on, once the scales are estimated, a unit beyond the outlier bound below gets weight 0
+   (and may come back when a later round's fit explains it).
 5. **Solve**: Levenberg-Marquardt in ``u`` (Marquardt's diagonal scaling, steps accepted only
    where the cost falls), from the previous round's answer.
 
@@ -69,6 +71,10 @@ SIGMA_FLOOR_MM = 1e-9
 SIGMA_FLOOR_RAD = 1e-12
 """Estimated standard deviations never fall below these (noise-free data)."""
 EXACT_FIT_MM = 1e-8
+EXACT_SCALE_MM = 1e-6
+EXACT_SCALE_RAD = 1e-9
+"""Estimated scales below these mean the kept units fit exactly (noise-free data, perhaps with
+gross errors down-weighted): the scales then shrink round after round and the rounds end."""
 """A fit this close (RMS of the measured positions) is exact: the scales then shrink round
 after round at the rounding level, and the rounds end without failing."""
 MAX_ROUNDS = 30
@@ -220,15 +226,18 @@ def calibrate_auto(
     w_rot = np.ones(m)
     w_pts = np.ones((m, P))
 
-    def sigmas():
+    def sigmas(weighted):
         inf = np.inf
-        a = np.where(pose_mask, sp / np.sqrt(w_pos), inf)
-        b = np.where(pose_mask, sr / np.sqrt(w_rot), inf)
-        c = np.where(seen, s_pts[None, :] / np.sqrt(np.where(seen, w_pts, 1.0)), inf)
+        one = 1.0
+        with np.errstate(divide="ignore"):
+            a = np.where(pose_mask, sp / np.sqrt(w_pos if weighted else one), inf)
+            b = np.where(pose_mask, sr / np.sqrt(w_rot if weighted else one), inf)
+            wp = np.where(seen, w_pts, 1.0) if weighted else one
+            c = np.where(seen, s_pts[None, :] / np.sqrt(wp), inf)
         return a, b, c
 
-    def lin(theta):
-        a, b, c = sigmas()
+    def lin(theta, weighted=True):
+        a, b, c = sigmas(weighted)
         r, J = linearise(theta, frames0, xyz0, obs, a, b, c, calibrated)
         return np.asarray(r), np.asarray(J)
 
@@ -291,20 +300,26 @@ def calibrate_auto(
             sp, sr, s_pts = _variance_components(
                 r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, keep_pts
             )
-        z_pos, z_rot, z_pts = _standardised(r, h, obs, w_pos, w_rot, w_pts)
+        z_pos, z_rot, z_pts = _standardised(lin(B @ u, False)[0], h, obs)
         keep_pos = pose_mask & ~(z_pos > threshold)
         keep_rot = pose_mask & ~(z_rot > threshold)
         keep_pts = seen & ~(z_pts > threshold)
         if loss == "huber":
-            w_pos = _huber(z_pos)
-            w_rot = _huber(z_rot)
-            w_pts = _huber(z_pts)
+            # Huber weights; from the second round (the scales estimated) units beyond the
+            # family-wise outlier bound are left out altogether.
+            reject = rounds >= 2
+            w_pos = _huber(z_pos, threshold if reject else None)
+            w_rot = _huber(z_rot, threshold if reject else None)
+            w_pts = _huber(z_pts, threshold if reject else None)
         change = _relative_change(old, (sp, sr, s_pts, w_pos, w_rot, w_pts))
-        if rounds > 1 and (change < ROUND_TOL or history[-1]["position_rms_mm"] < EXACT_FIT_MM):
+        exact_kept = not given and _exact_scales(sp, sr, s_pts, pose_mask, seen)
+        if rounds > 1 and (
+            change < ROUND_TOL or history[-1]["position_rms_mm"] < EXACT_FIT_MM or exact_kept
+        ):
             break
     else:
         exact = history[-1]["position_rms_mm"] < EXACT_FIT_MM
-        if not exact:
+        if not exact and not (not given and _exact_scales(sp, sr, s_pts, pose_mask, seen)):
             ok, result = False, "max_iterations_reached"
     theta = B @ u
     frames, xyz = (np.asarray(a) for a in apply_parameters(theta, frames0, xyz0, calibrated))
@@ -317,7 +332,7 @@ def calibrate_auto(
     r, J = lin(theta)
     Ju = J @ B
     h = _leverage(Ju)
-    z_pos, z_rot, z_pts = _standardised(r, h, obs, w_pos, w_rot, w_pts)
+    z_pos, z_rot, z_pts = _standardised(lin(theta, False)[0], h, obs)
     sigma_final = (sp, sr, s_pts)
     weights_final = (w_pos, w_rot, w_pts)
     try:
@@ -325,7 +340,10 @@ def calibrate_auto(
     except np.linalg.LinAlgError:
         cov_u = np.linalg.pinv(Ju.T @ Ju)
     cov = B @ cov_u @ B.T
-    if history[-1]["position_rms_mm"] < EXACT_FIT_MM and not given:
+    if not given and (
+        history[-1]["position_rms_mm"] < EXACT_FIT_MM
+        or _exact_scales(sp, sr, s_pts, pose_mask, seen)
+    ):
         # An exact fit leaves the scales at the rounding level, where their ratio means nothing:
         # the identifiability and conditioning are then reported at the initial scales.
         sp, sr, s_pts = INITIAL_SIGMA_MM, INITIAL_SIGMA_RAD, np.full(P, INITIAL_SIGMA_MM)
@@ -416,6 +434,14 @@ def _levenberg_marquardt(f, u, max_iterations, on_accept):
     return u, steps, False, True
 
 
+def _exact_scales(sp, sr, s_pts, pose_mask, seen) -> bool:
+    """Every estimated scale at the exact-fit level (:data:`EXACT_SCALE_MM`, ``_RAD``)."""
+    mm = [sp] if pose_mask.any() else []
+    mm += [s for s, any_seen in zip(s_pts, seen.any(0), strict=True) if any_seen]
+    ok = all(s < EXACT_SCALE_MM for s in mm)
+    return ok and (sr < EXACT_SCALE_RAD if pose_mask.any() else True)
+
+
 def _leverage(J: np.ndarray) -> np.ndarray:
     """Diagonal of the hat matrix ``J (J^T J)^-1 J^T`` (rows of ``J``)."""
     if J.shape[1] == 0:
@@ -475,25 +501,28 @@ def _variance_components(r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, seen):
     return new_sp, new_sr, new_pts
 
 
-def _standardised(r, h, obs, w_pos, w_rot, w_pts):
-    """Standardised residual norm of every unit, without its robust weight and corrected for
-    its leverage: ``|e / s| / sqrt(mean(1 - h))``; NaN for units not measured."""
+def _standardised(r, h, obs):
+    """Standardised residual norm of every unit, corrected for its leverage:
+    ``|e / s| / sqrt(mean(1 - h))``, from the residual ``r`` whitened by the scales alone (no
+    robust weights); NaN for units not measured."""
     pos, rot, pts = _unit_rows(obs)
     pose_mask = np.asarray(obs.pose_mask)
     seen = np.asarray(obs.seen)
 
-    def z(rows, w, mask):
-        norm = np.sqrt(np.sum(r[rows] ** 2, axis=-1) / np.where(mask, w, 1.0))
+    def z(rows, mask):
+        norm = np.sqrt(np.sum(r[rows] ** 2, axis=-1))
         red = np.clip(np.mean(1.0 - h[rows], axis=-1), 1e-6, None)
         return np.where(mask, norm / np.sqrt(red), np.nan)
 
-    return z(pos, w_pos, pose_mask), z(rot, w_rot, pose_mask), z(pts, w_pts, seen)
+    return z(pos, pose_mask), z(rot, pose_mask), z(pts, seen)
 
 
-def _huber(z: np.ndarray) -> np.ndarray:
-    """Huber weights ``min(1, c / z)`` (1 where ``z`` is NaN: not measured)."""
+def _huber(z: np.ndarray, reject: float | None = None) -> np.ndarray:
+    """Huber weights ``min(1, c / z)`` (1 where ``z`` is NaN: not measured), and 0 beyond
+    ``reject`` when given."""
     zz = np.where(np.isfinite(z), z, 0.0)
-    return np.where(zz > UNIT_HUBER_C, UNIT_HUBER_C / np.where(zz > 0, zz, 1.0), 1.0)
+    w = np.where(zz > UNIT_HUBER_C, UNIT_HUBER_C / np.where(zz > 0, zz, 1.0), 1.0)
+    return w if reject is None else np.where(zz > reject, 0.0, w)
 
 
 def _relative_change(old, new) -> float:
