@@ -24,25 +24,38 @@ predicted test points of any unbiased estimator is ``J_t C J_t^T`` with
 ``C = sigma^2 (J^T J)^+``. Per coordinate, the bound on the mean squared prediction error is
 ``b = trace(J_t C J_t^T) / (3 n_test)``.
 
-Reported per noise level, over the trials:
+Reported per noise level, over the trials (first table):
 
-* ``rms pred``: the RMS (per coordinate) of the predicted test points against the true ones;
-  ``rms bound``: ``sqrt(mean b)``;
+* ``prediction RMS``: the RMS (per coordinate) of the predicted test points against the true
+  ones; ``bound``: ``sqrt(mean b)``;
 * ``efficiency``: ``mean b / mean(squared prediction error)`` (1: the bound), with a bootstrap
   95 % interval over the trials;
-* ``held-out``: the RMS per coordinate against test points measured with fresh noise of the
-  same ``sigma`` (what ``cdra-jax validate`` measures), and its bound ``sqrt(sigma^2 + mean b)``;
-* the estimator's noise scale (mean of the three markers' estimated scales) over the true one,
-  median and 5-95 % range;
+* ``first-order ML, same noise``: the RMS of ``J_t J^+ eps``, the prediction error of the
+  efficient estimator linearised at the truth, from the same noise ``eps`` as the fit (its mean
+  square estimates ``b``); ``efficiency vs it``: its mean square over the estimator's, paired
+  trial by trial, so the noise of the draws largely cancels (a much narrower interval; 1: the
+  estimator does as well as the efficient one on the same data);
+* ``held-out RMS``: the RMS per coordinate against the test points measured with fresh noise of
+  the same ``sigma`` (what ``cdra-jax validate`` measures), and its bound
+  ``sqrt(sigma^2 + mean b)``;
+
+and about the estimator (second table):
+
+* the estimated noise scale (mean of the three markers' scales) over the true one, median and
+  5-95 % range;
 * median accepted Levenberg-Marquardt steps and reweighting rounds, the fraction converged,
-  the fraction of trials with any unit flagged as an outlier (clean data: about 1 % expected, the
-  flags' family-wise false-alarm rate), the mean share of units the Huber loss down-weights,
-  and the median wall time of one calibration (after compilation).
+  the fraction of trials with any unit flagged as an outlier (clean data: about 1 %, the flags'
+  family-wise false-alarm rate), the mean share of units the Huber loss down-weights, and the
+  median wall time of one calibration (after compilation).
+
+``--loss ls`` (plain least squares) and ``--given-noise`` (the true ``sigma`` given, no scale
+estimated) run the same trials with those parts of the estimator switched off.
 
 Usage::
 
     python benchmarks/markers.py                          # 100 trials per noise level
     python benchmarks/markers.py --trials 20 --noise 0.05 --json
+    python benchmarks/markers.py --loss ls --given-noise
 """
 
 from __future__ import annotations
@@ -114,7 +127,10 @@ def trial(arm, sigma, seed, args):
     meas = run.measurements
     names = tuple(meas.point_names)
     t0 = time.perf_counter()
-    sol = calibrate_auto(arm, meas.q, meas.full_poses, meas.points, names, loss=args.loss)
+    given = NoiseModel(sigma, ROTATION_NOISE_RAD) if args.given_noise else None
+    sol = calibrate_auto(
+        arm, meas.q, meas.full_poses, meas.points, names, noise=given, loss=args.loss
+    )
     wall = time.perf_counter() - t0
 
     # The truth in the device frame: the device pose folded into the base frame.
@@ -259,6 +275,11 @@ def main(argv: list[str] | None = None) -> dict:
         default="huber",
         help="the estimator's loss: huber (the default estimator) or ls (plain least squares)",
     )
+    ap.add_argument(
+        "--given-noise",
+        action="store_true",
+        help="give the estimator the true sigma instead of estimating the scales from the data",
+    )
     ap.add_argument("--seed", type=int, default=0, help="first seed (0)")
     ap.add_argument("--json", action="store_true", help="JSON summary on the last line")
     args = ap.parse_args(argv)
@@ -274,7 +295,8 @@ def main(argv: list[str] | None = None) -> dict:
     print(
         f"UR5, 3 calibrated markers, {args.poses} fit poses ({args.occlusion:g} occlusion), "
         f"{args.test_poses} test poses, {args.trials} trials per noise level, loss "
-        f"{args.loss}; RMS per coordinate, mm"
+        f"{args.loss}, noise {'given' if args.given_noise else 'estimated'}; RMS per "
+        "coordinate, mm"
     )
     print_table(
         (
@@ -344,6 +366,7 @@ def main(argv: list[str] | None = None) -> dict:
         "device_frame": list(args.device_frame),
         "trials": args.trials,
         "loss": args.loss,
+        "given_noise": args.given_noise,
         "seed": args.seed,
         "levels": levels,
         "total_s": total,

@@ -305,3 +305,37 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert "exists" in capsys.readouterr().err
     d = diagnose_files(None, data, 0.05, 0.0005)
     assert d.effect == "joint_compliance"
+
+
+def test_skipped_effects_are_summarised_per_effect_when_no_location_applies():
+    from types import SimpleNamespace
+
+    from cdra_jax.diagnosis.report import _skipped_text
+
+    rows = [
+        SimpleNamespace(
+            effect="cable_elasticity",
+            location=loc,
+            label=f"cable_elasticity@{loc}",
+            skipped=f"module {loc!r} has no cables in the model",
+        )
+        for loc in ("j1", "j2", "j3")
+    ] + [
+        SimpleNamespace(effect="backlash", location="j1", label="backlash@j1", skipped=None),
+        SimpleNamespace(
+            effect="backlash", location="j2", label="backlash@j2", skipped="no approach.j2"
+        ),
+    ]
+    assert _skipped_text(rows) == [
+        "cable_elasticity at every location (no module has cables in the model)",
+        "backlash@j2 (no approach.j2)",
+    ]
+
+
+def test_svd_and_cholesky_survive_what_lapack_refuses():
+    from cdra_jax.diagnosis import stats
+
+    with pytest.raises(ValueError, match="non-finite value"):
+        stats.orthonormal_basis(np.array([[1.0, np.nan], [0.0, 1.0]]))
+    S = np.eye(3) + 1e-17 * np.ones((3, 3))
+    assert np.all(np.isfinite(stats._cholesky(S)))

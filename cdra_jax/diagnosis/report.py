@@ -19,6 +19,27 @@ def _p(p: float | None) -> str:
     return "< 1e-12" if p < 1e-12 else format(p, ".2g")
 
 
+def _skipped_text(candidates) -> list[str]:
+    """One entry per skipped effect where every location was skipped for the same reason (an
+    arm without cables: "cable_elasticity (no module has cables in the model)"), else one per
+    candidate."""
+    by_effect: dict[str, list] = {}
+    for c in candidates:
+        by_effect.setdefault(c.effect, []).append(c)
+    out = []
+    for effect, rows in by_effect.items():
+        skipped = [c for c in rows if c.skipped]
+        if not skipped:
+            continue
+        generic = {c.skipped.replace(repr(c.location), "<module>") for c in skipped}
+        if len(skipped) == len(rows) and len(rows) > 1 and len(generic) == 1:
+            reason = generic.pop().replace("module <module> has no ", "no module has ")
+            out.append(f"{effect} at every location ({reason})")
+        else:
+            out += [f"{c.label} ({c.skipped})" for c in skipped]
+    return out
+
+
 def render_report(d: Diagnosis, best: Candidate | None) -> str:
     """Plain-words text: the fit, the test, the answer, the improvement, the caveats."""
     det = d.details
@@ -143,7 +164,7 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         lines.append(
             "Not identifiable from these poses (absorbed by the frames): " + ", ".join(nid)
         )
-    skipped = [f"{c.label} ({c.skipped})" for c in d.candidates if c.skipped]
+    skipped = _skipped_text(d.candidates)
     if skipped:
         lines.append("Not tried: " + "; ".join(skipped) + ".")
     return "\n".join(lines)

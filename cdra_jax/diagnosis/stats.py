@@ -30,6 +30,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.integrate
 import scipy.optimize
 import scipy.stats
@@ -50,6 +51,35 @@ def fold_of_poses(m: int, folds: int, seed: int) -> np.ndarray:
     return out
 
 
+def _svd(A: np.ndarray, full_matrices: bool = True, compute_uv: bool = True):
+    """``numpy.linalg.svd``; where LAPACK's divide-and-conquer driver does not converge (badly
+    scaled or nearly repeated singular values), the slower QR-iteration driver (``gesvd``).
+    Non-finite input is an error naming what to check."""
+    A = np.asarray(A, dtype=float)
+    if not np.all(np.isfinite(A)):
+        raise ValueError(
+            "a non-finite value (NaN or inf) in the linearised model: a candidate effect or the "
+            "data produce it (check the auxiliary columns and the model's masses)"
+        )
+    try:
+        return np.linalg.svd(A, full_matrices=full_matrices, compute_uv=compute_uv)
+    except np.linalg.LinAlgError:
+        return scipy.linalg.svd(
+            A, full_matrices=full_matrices, compute_uv=compute_uv, lapack_driver="gesvd"
+        )
+
+
+def _cholesky(S: np.ndarray) -> np.ndarray:
+    """Cholesky factor of ``S = I + G G^T`` (positive definite); symmetrised and, where
+    rounding makes it indefinite, with a relative jitter of 1e-12 on the diagonal."""
+    S = 0.5 * (S + S.T)
+    try:
+        return np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        jitter = 1e-12 * max(float(np.trace(S)) / max(S.shape[0], 1), 1.0)
+        return np.linalg.cholesky(S + jitter * np.eye(S.shape[0]))
+
+
 def _normalise_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = np.linalg.norm(A, axis=0)
     s = np.where(n > 0, 1.0 / np.where(n > 0, n, 1.0), 1.0)
@@ -60,7 +90,7 @@ def pinv(A: np.ndarray, rcond: float = _RCOND) -> tuple[np.ndarray, int]:
     """Pseudo-inverse with a relative singular-value cut-off, and the numerical rank."""
     if A.shape[1] == 0:
         return np.zeros((0, A.shape[0])), 0
-    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    U, s, Vt = _svd(A, full_matrices=False)
     keep = s > rcond * (s[0] if s.size else 0.0)
     return (Vt[keep].T / s[keep]) @ U[:, keep].T, int(keep.sum())
 
@@ -69,7 +99,7 @@ def orthonormal_basis(A: np.ndarray, rcond: float = _RCOND) -> np.ndarray:
     """Orthonormal basis ``(N, rank)`` of the column space of ``A`` (columns normalised first)."""
     if A.shape[1] == 0:
         return np.zeros((A.shape[0], 0))
-    U, s, _ = np.linalg.svd(_normalise_columns(A)[0], full_matrices=False)
+    U, s, _ = _svd(_normalise_columns(A)[0], full_matrices=False)
     return U[:, s > rcond * s[0]] if s.size and s[0] > 0 else np.zeros((A.shape[0], 0))
 
 
@@ -144,7 +174,7 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
         e = r[te] - At @ (P @ r[tr])
         G = At @ P  # (n_te, n_tr): prediction from the training residual
         S = np.eye(int(te.sum())) + G @ G.T
-        L = np.linalg.cholesky(S)
+        L = _cholesky(S)
         z = np.linalg.solve(L, e)
         Q += float(z @ z)
         logdet += 2.0 * float(np.sum(np.log(np.diag(L))))
@@ -158,8 +188,8 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
             Wss[te] = B
     weights = ss_weights = None
     if W is not None and Wss is not None:
-        weights = np.linalg.svd(W, compute_uv=False) ** 2
-        ss_weights = np.linalg.svd(Wss, compute_uv=False) ** 2
+        weights = _svd(W, compute_uv=False) ** 2
+        ss_weights = _svd(Wss, compute_uv=False) ** 2
     loglik = -0.5 * (Q + logdet + N * np.log(2 * np.pi))
     return HeldOut(res.reshape(-1, 6), var.reshape(-1, 6), Q, float(loglik), weights, ss_weights)
 
@@ -262,7 +292,7 @@ def project(J: np.ndarray, UD: np.ndarray) -> Projection:
     if UJ.shape[1] == 0:
         return Projection(np.zeros((J.shape[0], 0)), 1.0, np.zeros(0))
     Pj = UJ - UD @ (UD.T @ UJ)
-    U, s, _ = np.linalg.svd(Pj, full_matrices=False)
+    U, s, _ = _svd(Pj, full_matrices=False)
     vis = s * s
     keep = vis > VISIBLE_MIN
     return Projection(U[:, keep], float(1.0 - vis.max()), vis)
@@ -291,7 +321,7 @@ def principal_cosines(Ba: np.ndarray, Bb: np.ndarray) -> np.ndarray:
     """Cosines of the principal angles between two orthonormal bases, decreasing."""
     if Ba.shape[1] == 0 or Bb.shape[1] == 0:
         return np.zeros(0)
-    return np.clip(np.linalg.svd(Ba.T @ Bb, compute_uv=False), 0.0, 1.0)
+    return np.clip(_svd(Ba.T @ Bb, compute_uv=False), 0.0, 1.0)
 
 
 def indistinguishable(Ba: np.ndarray, Bb: np.ndarray, cos_min: float = 0.98) -> bool:
