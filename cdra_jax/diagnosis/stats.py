@@ -30,8 +30,8 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 import scipy.integrate
+import scipy.linalg
 import scipy.optimize
 import scipy.stats
 
