@@ -23,7 +23,8 @@ residual of :mod:`.observations`:
    (divided by ``sqrt(1 - h)``) and ``c`` the 95 % point of the chi distribution with 3 degrees
    of freedom (:data:`UNIT_HUBER_C`), by iteratively reweighted least squares; from the second
    round on, once the scales are estimated, a unit beyond the outlier bound below gets weight 0
-   (and may come back when a later round's fit explains it).
+   (and may come back when a later round's fit explains it), as long as such units are at most
+   :data:`MAX_REJECTED` of all.
 5. **Solve**: Levenberg-Marquardt in ``u`` (Marquardt's diagonal scaling, steps accepted only
    where the cost falls), from the previous round's answer.
 
@@ -77,6 +78,10 @@ EXACT_SCALE_RAD = 1e-9
 gross errors down-weighted): the scales then shrink round after round and the rounds end."""
 """A fit this close (RMS of the measured positions) is exact: the scales then shrink round
 after round at the rounding level, and the rounds end without failing."""
+MAX_REJECTED = 0.05
+"""Units beyond the outlier bound are left out only while they are at most this fraction of
+all units: many more mean a misfit of the model or of the noise scales, not a few gross errors,
+and the Huber weights alone then bound their influence."""
 MAX_ROUNDS = 30
 """Rounds of reweighting and re-estimating the noise scales."""
 ROUND_TOL = 1e-4
@@ -307,7 +312,8 @@ def calibrate_auto(
         if loss == "huber":
             # Huber weights; from the second round (the scales estimated) units beyond the
             # family-wise outlier bound are left out altogether.
-            reject = rounds >= 2
+            beyond = sum(int(np.sum(z > threshold)) for z in (z_pos, z_rot, z_pts))
+            reject = rounds >= 2 and beyond <= max(1, int(MAX_REJECTED * n_units))
             w_pos = _huber(z_pos, threshold if reject else None)
             w_rot = _huber(z_rot, threshold if reject else None)
             w_pts = _huber(z_pts, threshold if reject else None)
