@@ -53,8 +53,10 @@ from .observations import (
     Observations,
     apply_parameters,
     linearise,
+    bucket,
     make_observations,
     marker_table,
+    padded,
     raw_errors,
 )
 from .registration import Start, initial_guess
@@ -207,7 +209,9 @@ def calibrate_auto(
     if loss not in ("huber", "ls"):
         raise ValueError(f"loss must be 'huber' or 'ls', got {loss!r}")
     point_names = tuple(point_names)
-    obs = make_observations(arm, q, full_poses, points)
+    # Rows padded to a bucket size: data files of different lengths reuse compiled programs.
+    m_data = int(np.shape(q)[0])
+    obs = padded(make_observations(arm, q, full_poses, points), bucket(m_data))
     m, P = obs.m, obs.n_points
     pose_mask = np.asarray(obs.pose_mask)
     seen = np.asarray(obs.seen)
@@ -378,12 +382,12 @@ def calibrate_auto(
         sigma_points_mm=np.where(seen.any(0), s_pts, nan),
         noise_source="given" if given else "estimated",
         loss=loss,
-        weights_position=np.where(pose_mask, w_pos, nan),
-        weights_rotation=np.where(pose_mask, w_rot, nan),
-        weights_points=np.where(seen, w_pts, nan),
-        z_position=z_pos,
-        z_rotation=z_rot,
-        z_points=z_pts,
+        weights_position=np.where(pose_mask, w_pos, nan)[:m_data],
+        weights_rotation=np.where(pose_mask, w_rot, nan)[:m_data],
+        weights_points=np.where(seen, w_pts, nan)[:m_data],
+        z_position=z_pos[:m_data],
+        z_rotation=z_rot[:m_data],
+        z_points=z_pts[:m_data],
         outlier_threshold=threshold,
         rank=rank,
         n_params=n,

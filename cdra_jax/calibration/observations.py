@@ -90,6 +90,40 @@ def make_observations(
 _module_poses = eqx.filter_jit(module_poses)
 
 
+BUCKETS = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512, 768, 1024)
+"""Row counts that measurement files are padded up to (beyond: multiples of 512), so that files
+of different lengths share compiled programs (and the persistent compilation cache)."""
+
+
+def bucket(m: int) -> int:
+    """The smallest of :data:`BUCKETS` at least ``m`` (beyond them, a multiple of 512)."""
+    for b in BUCKETS:
+        if m <= b:
+            return b
+    return -(-m // 512) * 512
+
+
+def padded(obs: Observations, rows: int) -> Observations:
+    """``obs`` with unmeasured rows appended up to ``rows``: they contribute exact zeros to the
+    residual and its Jacobian (identity poses, every mask false)."""
+    extra = rows - obs.m
+    if extra <= 0:
+        return obs
+
+    def pad(a, fill):
+        a = np.asarray(a)
+        block = np.broadcast_to(np.asarray(fill, a.dtype), (extra,) + a.shape[1:])
+        return jnp.asarray(np.concatenate([a, block]))
+
+    return Observations(
+        poses=pad(obs.poses, np.eye(4)),
+        full_poses=pad(obs.full_poses, np.eye(4)),
+        pose_mask=pad(obs.pose_mask, False),
+        points=pad(obs.points, 0.0),
+        seen=pad(obs.seen, False),
+    )
+
+
 def marker_table(arm: Arm, point_names: Sequence[str]) -> tuple[np.ndarray, tuple[int, ...]]:
     """``(xyz (P, 3), calibrated)``: the tool-frame position of each point (the origin is
     ``0``) and the indices of the points whose position is calibrated."""
