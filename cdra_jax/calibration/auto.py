@@ -52,8 +52,8 @@ from .model import NoiseModel
 from .observations import (
     Observations,
     apply_parameters,
-    linearise,
     bucket,
+    linearise,
     make_observations,
     marker_table,
     padded,
