@@ -182,21 +182,31 @@ def _check_point_scale(arm: Arm, meas: Measurements, T_model: np.ndarray) -> Non
         if 1.0 / POSITION_SCALE_TOL <= ratio <= POSITION_SCALE_TOL:
             continue
         column = "measured.x" if name == "origin" else f"measured.{name}.x"
-        for factor, unit, fix in _UNITS:
-            if ratio > 0 and abs(math.log(ratio * factor)) < math.log(1.25):
-                raise MeasurementFileError(
-                    meas.source,
-                    f"the measured points {name!r} look like {unit}: median spread "
-                    f"{s_meas:.4g} vs {s_model:.4g} mm predicted by the model; {fix}?",
-                    column=column,
-                )
-        raise MeasurementFileError(
-            meas.source,
-            f"the measured points {name!r}: median spread {s_meas:.4g} is {ratio:.3g} times the "
-            f"{s_model:.4g} mm predicted by the model: wrong units (the file must be in mm), "
-            "or a model of another arm?",
-            column=column,
+        raise _unit_error(
+            meas.source, column, f"the measured points {name!r}", "median spread", s_meas, s_model
         )
+
+
+def _unit_error(
+    source: str, column: str, what: str, measure: str, s_meas: float, s_model: float
+) -> MeasurementFileError:
+    """The error for measured positions ``s_meas / s_model`` times the model's: a named unit
+    where the factor is one (metres, centimetres, inches, micrometres), else wrong units."""
+    ratio = s_meas / s_model
+    for factor, unit, fix in _UNITS:
+        if ratio > 0 and abs(math.log(ratio * factor)) < math.log(1.25):
+            return MeasurementFileError(
+                source,
+                f"{what} look like {unit}: {measure} {s_meas:.4g} vs {s_model:.4g} mm predicted "
+                f"by the model; {fix}?",
+                column=column,
+            )
+    return MeasurementFileError(
+        source,
+        f"{what}: {measure} {s_meas:.4g} is {ratio:.3g} times the {s_model:.4g} mm predicted by "
+        "the model: wrong units (the file must be in mm), or a model of another arm?",
+        column=column,
+    )
 
 
 def _check_positions(meas: Measurements, T_model: np.ndarray) -> list[str]:
@@ -211,20 +221,8 @@ def _check_positions(meas: Measurements, T_model: np.ndarray) -> list[str]:
     if s_model >= _MIN_SPREAD_MM:
         ratio = s_meas / s_model
         if not 1.0 / POSITION_SCALE_TOL <= ratio <= POSITION_SCALE_TOL:
-            for factor, unit, fix in _UNITS:
-                if ratio > 0 and abs(math.log(ratio * factor)) < math.log(1.25):
-                    raise MeasurementFileError(
-                        meas.source,
-                        f"{_POSITION_COLUMNS_TEXT} look like {unit}: {what} {s_meas:.4g} vs "
-                        f"{s_model:.4g} mm predicted by the model; {fix}?",
-                        column="measured.x",
-                    )
-            raise MeasurementFileError(
-                meas.source,
-                f"{_POSITION_COLUMNS_TEXT}: {what} {s_meas:.4g} is {ratio:.3g} times the "
-                f"{s_model:.4g} mm predicted by the model: wrong units (the file must be in mm), "
-                "or a model of another arm?",
-                column="measured.x",
+            raise _unit_error(
+                meas.source, "measured.x", _POSITION_COLUMNS_TEXT, what, s_meas, s_model
             )
     warnings = []
     dist = np.linalg.norm(p - p_model, axis=-1)

@@ -235,13 +235,7 @@ def result_to_dict(
     if outlier_ids:
         warnings.append(outlier_warning(ids, z, weights, flagged, threshold, robust is not None))
     return {
-        "format": RESULT_FORMAT,
-        "format_version": RESULT_FORMAT_VERSION,
-        "cdra_jax_version": package_version(),
-        "inputs": dict(inputs or {}),
-        "model": arm.name,
-        "n_poses": m,
-        "solver": solution.solver,
+        **_header(arm, inputs, m, solution.solver),
         "converged": bool(solution.converged),
         "result": str(result_names(solution.result)),
         "message": "" if bool(solution.converged) else str(result_messages(solution.result)),
@@ -289,6 +283,19 @@ def result_to_dict(
         },
         "conditioning": None if conditioning is None else _finite(dict(conditioning)),
         "warnings": warnings,
+    }
+
+
+def _header(arm: Arm, inputs, m: int, solver: str) -> dict[str, Any]:
+    """The first keys of every result mapping."""
+    return {
+        "format": RESULT_FORMAT,
+        "format_version": RESULT_FORMAT_VERSION,
+        "cdra_jax_version": package_version(),
+        "inputs": dict(inputs or {}),
+        "model": arm.name,
+        "n_poses": m,
+        "solver": solver,
     }
 
 
@@ -573,13 +580,7 @@ def auto_result_to_dict(
     }
     return _finite(
         {
-            "format": RESULT_FORMAT,
-            "format_version": RESULT_FORMAT_VERSION,
-            "cdra_jax_version": package_version(),
-            "inputs": dict(inputs or {}),
-            "model": arm.name,
-            "n_poses": m,
-            "solver": "auto",
+            **_header(arm, inputs, m, "auto"),
             "converged": bool(sol.converged),
             "result": sol.result,
             "message": ""

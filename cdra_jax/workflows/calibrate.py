@@ -370,21 +370,7 @@ def calibrate(
         conditioning=cond.to_dict(),
         warnings=stored,
     )
-    result["gauge"] = _gauge_dict(gauge)
-    implausible = implausible_frame_errors_warning(result)
-    if implausible is not None:
-        result["warnings"].append(implausible)
-    trust = trust_check(result)
-    result["trusted"] = trust["trusted"]
-    result["trust"] = trust
-    # stderr shows each warning once; those of the identifiability analysis only with a
-    # degenerate pose set (otherwise they are part of the summary).
-    shown = [*plausibility, *degenerate]
-    if degenerate:
-        shown += list(ident.warnings)
-    if cond.warning:
-        shown.append(cond.warning)
-    shown += [w for w in result["warnings"] if w not in shown and w not in ident.warnings]
+    shown = _finish(result, _gauge_dict(gauge), plausibility, degenerate, ident, cond)
     summary = ident.summary()
     if noise is not None:
         # Covariance of the identified parameters, Cramer-Rao bound and 95 % intervals at the
@@ -410,6 +396,26 @@ def calibrate(
         model_label=model_label,
         data_label=data_label,
     )
+
+
+def _finish(result, gauge, plausibility, degenerate, ident, cond) -> list[str]:
+    """Add the gauge, the implausibility warning and the trust verdict to a result mapping;
+    return the warnings stderr shows, each once (those of the identifiability analysis only
+    with a degenerate pose set: otherwise they are part of the summary)."""
+    result["gauge"] = gauge
+    implausible = implausible_frame_errors_warning(result)
+    if implausible is not None:
+        result["warnings"].append(implausible)
+    trust = trust_check(result)
+    result["trusted"] = trust["trusted"]
+    result["trust"] = trust
+    shown = [*plausibility, *degenerate]
+    if degenerate:
+        shown += list(ident.warnings)
+    if cond.warning:
+        shown.append(cond.warning)
+    shown += [w for w in result["warnings"] if w not in shown and w not in ident.warnings]
+    return shown
 
 
 def _calibrate_auto(
@@ -476,19 +482,8 @@ def _calibrate_auto(
         warnings=stored,
         observations=obs,
     )
-    result["gauge"] = _gauge_dict(sol.gauge, sol.gauge_reference)
-    implausible = implausible_frame_errors_warning(result)
-    if implausible is not None:
-        result["warnings"].append(implausible)
-    trust = trust_check(result)
-    result["trusted"] = trust["trusted"]
-    result["trust"] = trust
-    shown = [*plausibility, *degenerate]
-    if degenerate:
-        shown += list(ident.warnings)
-    if cond.warning:
-        shown.append(cond.warning)
-    shown += [w for w in result["warnings"] if w not in shown and w not in ident.warnings]
+    gauge = _gauge_dict(sol.gauge, sol.gauge_reference)
+    shown = _finish(result, gauge, plausibility, degenerate, ident, cond)
     summary = ident.summary() + "\n" + _uncertainty_summary(uncertainty)
     return CalibrationRun(
         arm=arm,
