@@ -20,10 +20,10 @@ def register(subparsers) -> argparse.ArgumentParser:
         "validate",
         help="predict held-out measurements with a model or a calibration result",
         description=(
-            "Predict the measured tool poses of a measurement CSV with a model (or, with "
-            "--result, the nominal model with a calibration result applied: Eq. 19) and report "
-            "the position error (mm) and rotation error (rad) per row and pooled (mean, rms, "
-            "max)."
+            "Predict the measured tool poses and points (tool origin, markers) of a measurement "
+            "CSV with a model (or, with --result, the nominal model with a calibration result "
+            "applied: Eq. 19) and report the position error (mm, over every measured position) "
+            "and the rotation error (rad, full poses) per row and pooled (mean, rms, max)."
         ),
     )
     common.add_model_option(p)

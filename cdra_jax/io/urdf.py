@@ -387,7 +387,7 @@ def not_held(arm: Arm) -> list[str]:
     d = arm_to_dict(arm)
     out = []
     for key in sorted(set(d) - {"name", "description", "gravity", "frames", "modules"}):
-        out.append(f"model [[{key}]] / {key} (a URDF has no place for it)")
+        out.append(f"the model's [[{key}]] (a URDF has no place for them)")
     g = np.asarray(d.get("gravity", _DEFAULT_GRAVITY), dtype=float)
     if not np.allclose(g, _DEFAULT_GRAVITY, rtol=0, atol=1e-12):
         out.append(f"gravity {g.tolist()} m/s^2 (a URDF has no gravity)")

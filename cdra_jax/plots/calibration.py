@@ -24,9 +24,13 @@ def calibration_residuals_figure(result: Mapping[str, Any]) -> Figure:
     Poses flagged as outliers are marked with a red ring."""
     rows = list(result["residuals"])
     x = np.arange(len(rows))
-    fig = new_figure(13.0, 3.8)
-    axes = [fig.add_subplot(1, 3, i + 1) for i in range(3)]
-    for ax, what, unit in ((axes[0], "position", "mm"), (axes[1], "rotation", "rad")):
+    kinds = [("position", "mm")]
+    if any(r.get("calibrated_rotation_rad") is not None for r in rows):
+        kinds.append(("rotation", "rad"))  # points only: no rotation panel
+    n = len(kinds) + 1
+    fig = new_figure(4.35 * n, 3.8)
+    axes = [fig.add_subplot(1, n, i + 1) for i in range(n)]
+    for ax, (what, unit) in zip(axes, kinds, strict=False):
         before = _values(rows, f"nominal_{what}_{unit}")
         after = _values(rows, f"calibrated_{what}_{unit}")
         ax.semilogy(x, np.maximum(before, 1e-300), "o", ms=4, color="0.55", label="nominal")
@@ -49,13 +53,16 @@ def calibration_residuals_figure(result: Mapping[str, Any]) -> Figure:
         ax.legend(fontsize="small")
     its = [result["initial"], *result["iterations"]]
     k = np.arange(len(its))
-    ax = axes[2]
+    ax = axes[-1]
     dp = _values(its, "delta_p_mm")
     dR = _values(its, "delta_R_rad")
     ax.semilogy(k, np.maximum(dp, 1e-300), "o-", color="C0", label="$\\delta p$ [mm] (Eq. 20)")
-    ax.semilogy(k, np.maximum(dR, 1e-300), "s--", color="C1", label="$\\delta R$ [rad] (Eq. 21)")
+    if np.any(np.isfinite(dR)):
+        ax.semilogy(
+            k, np.maximum(dR, 1e-300), "s--", color="C1", label="$\\delta R$ [rad] (Eq. 21)"
+        )
     ax.set_xlabel("iteration")
-    ax.set_title("(c) deviation of the fitted poses")
+    ax.set_title(f"({'abc'[n - 1]}) deviation of the fitted poses")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     return fig

@@ -18,7 +18,7 @@ def validation_figure(validation: Mapping[str, Any], reference: str = "nominal")
     ``"nominal"`` or ``"compare"``, the prefix of its per-row columns)."""
     rows = list(validation["rows"])
     x = np.arange(len(rows))
-    has_rot = validation.get("rotation_error_rad") is not None
+    has_rot = bool((validation.get("rotation_error_rad") or {}).get("n"))
     fig = new_figure(6.5 * (1 + has_rot), 3.8)
     panels = [("position_mm", "position error [mm]")]
     if has_rot:
