@@ -1471,13 +1471,15 @@ def test_sigterm_during_calibrate_leaves_no_temporary_file(base, tmp_path):
     time.sleep(2.0)  # into the compilation and the solver
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
-    assert (
-        not _temporaries(tmp_path) and not (tmp_path / "r.json").exists() or (proc.returncode == 0)
-    )
+    assert not _temporaries(tmp_path)
     assert proc.returncode in (cli.EXIT_TERMINATED, cli.EXIT_OK), err
     assert "Traceback" not in err
     names = sorted(p.name for p in tmp_path.iterdir())
     if proc.returncode == cli.EXIT_OK:  # finished first: the whole result
         assert names == ["data.csv", "r.json"] and json.loads((tmp_path / "r.json").read_text())
     else:
-        assert names == ["data.csv"]
+        # terminated: nothing, or (on a loaded machine, the signal arriving after the atomic
+        # write and before the exit) the complete result, never a part of one
+        assert names in (["data.csv"], ["data.csv", "r.json"])
+        if "r.json" in names:
+            assert json.loads((tmp_path / "r.json").read_text())["format"]
