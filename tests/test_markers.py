@@ -264,9 +264,7 @@ def test_every_solver_returns_the_same_frames_in_the_nominal_gauge():
         np.testing.assert_allclose(frames[name], frames["lm"], atol=1e-9)
     # ... and through the workflow: the same identified errors
     meas = Measurements.from_arrays(arm, q, T)
-    twists = [
-        workflows.calibrate(arm, meas, solver=s).result["frames"] for s in ("paper", "auto")
-    ]
+    twists = [workflows.calibrate(arm, meas, solver=s).result["frames"] for s in ("paper", "auto")]
     for other in twists[1:]:
         for f in arm.frame_names:
             a, b = twists[0][f]["error_twist"], other[f]["error_twist"]
@@ -369,3 +367,15 @@ def test_diagnose_says_it_needs_full_poses(arm, truth):
     meas = Measurements.from_arrays(arm, q, points={"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2]})
     with pytest.raises(ValueError, match="diagnose needs full tool poses"):
         workflows.diagnose(arm, meas)
+
+
+def test_validate_register_places_the_reference_in_the_device_frame(arm, truth):
+    q, _, pts = _points(truth, 12, key=10)
+    meas = Measurements.from_arrays(arm, q, points={"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2]})
+    plain = workflows.validate(truth, meas, compare=arm)
+    registered = workflows.validate(truth, meas, compare=arm, register_reference=True)
+    far = plain.to_dict()["compare"]["position_error_mm"]["mean"]
+    near = registered.to_dict()["compare"]["position_error_mm"]["mean"]
+    assert far > 300 and near < 30  # the tracker's pose, then only the frame and marker errors
+    assert registered.to_dict()["position_error_mm"] == plain.to_dict()["position_error_mm"]
+    assert "registered to the measuring device's frame" in registered.report()

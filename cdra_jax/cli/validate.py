@@ -39,6 +39,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="a second model TOML whose errors are shown beside (e.g. the nominal model next to "
         "a calibrated one from calibrate --model-out); not with --result",
     )
+    p.add_argument(
+        "--register",
+        action="store_true",
+        help="place the reference model (--compare, or the nominal model with --result) in the "
+        "measuring device's frame first, by a rigid fit of its base frame to these data: a fair "
+        "baseline when the data come from a tracker in its own frame",
+    )
     p.add_argument("--out", metavar="V", help="write the validation JSON (per-row errors)")
     p.add_argument("--plot", metavar="PNG", help="write the per-row error figure")
     common.add_force_option(p)
@@ -59,13 +66,21 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.result is not None and args.compare is not None:
         raise ValueError("--result and --compare: give one (a result applies to --model)")
+    if args.register and args.result is None and args.compare is None:
+        raise ValueError("--register places the reference model: give --compare or --result")
     check_output(args.out, args.force, "--out")
     check_output(args.plot, args.force, "--plot")
 
     from ..io import save_figure_atomic
     from ..workflows import validate
 
-    v = validate(args.model, args.data, result=args.result, compare=args.compare)
+    v = validate(
+        args.model,
+        args.data,
+        result=args.result,
+        compare=args.compare,
+        register_reference=args.register,
+    )
     lines = [v.report()]
     if args.out:
         lines.append(common.wrote(v.save(args.out, force=args.force)))

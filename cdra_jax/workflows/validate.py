@@ -23,6 +23,7 @@ from matplotlib.figure import Figure
 
 from ..arm import Arm
 from ..calibration.observations import make_observations, marker_table, raw_errors
+from ..calibration.registration import initial_guess
 from ..io import Measurements, calibrated_arm_from_result, load_result
 from ..plots import validation_figure
 from .inputs import Data, Model, resolve_arm, resolve_measurements
@@ -200,6 +201,7 @@ def validate(
     *,
     result: Mapping[str, Any] | str | os.PathLike | None = None,
     compare: Arm | str | os.PathLike | None = None,
+    register_reference: bool = False,
     model_label: str | None = None,
     data_label: str | None = None,
 ) -> ValidationRun:
@@ -215,6 +217,12 @@ def validate(
             errors are reported beside (for example the nominal model next to a calibrated one
             from ``calibrate --model-out``; ``default_arm()`` for the embedded one); not together
             with ``result``.
+        register_reference: place the reference model (the nominal or ``compare`` model, in
+            the robot's frame) in the measuring device's frame first: its base frame moved by
+            the rigid transform that best maps its predicted points onto these measurements
+            (:func:`cdra_jax.calibration.registration.initial_guess`; markers with
+            ``calibrate = true`` placed likewise). A fair "before calibration" baseline when
+            the data are in a tracker's frame; the validated model is used as given.
         model_label, data_label: names for the report.
 
     Raises:
@@ -239,7 +247,7 @@ def validate(
     ref = None
     reference, reference_label = "nominal", None
     if result is not None:
-        ref = prediction_errors(nominal, meas)
+        ref = prediction_errors(_registered(nominal, meas, register_reference), meas)
         reference_label = model_label
     elif compare is not None:
         other, reference_label = resolve_arm(compare)
@@ -249,8 +257,10 @@ def validate(
                 f"the model's {nominal.state_names}"
             )
         other = _with_markers_of(other, nominal, meas)
-        ref = prediction_errors(other, meas)
+        ref = prediction_errors(_registered(other, meas, register_reference), meas)
         reference = "compare"
+    if register_reference and reference_label is not None:
+        reference_label += " (registered to the measuring device's frame on these data)"
     return ValidationRun(
         arm=arm,
         measurements=meas,
@@ -262,6 +272,27 @@ def validate(
         reference=reference,
         reference_label=reference_label,
     )
+
+
+def _registered(arm: Arm, meas: Measurements, register: bool) -> Arm:
+    """``arm`` with its base frame (and rough markers) registered to ``meas`` when asked."""
+    if not register:
+        return arm
+    obs = make_observations(arm, meas.q, meas.full_poses, meas.points)
+    xyz, calibrated = marker_table(arm, meas.point_names)
+    start = initial_guess(np.asarray(arm.frames), xyz, obs, calibrated)
+    placed = {meas.point_names[j]: start.xyz[j] for j in calibrated}
+    out = arm.with_frames(start.frames)
+    if placed:
+        out = out.with_markers(
+            [
+                dataclasses.replace(mk, xyz=tuple(float(v) for v in placed[mk.name]))
+                if mk.name in placed
+                else mk
+                for mk in arm.markers
+            ]
+        )
+    return out
 
 
 def _with_markers_of(other: Arm, model: Arm, meas: Measurements) -> Arm:
