@@ -14,10 +14,12 @@ residual of :mod:`.observations`:
 3. **Noise scales** (variance-component estimation, Förstner 1979): each residual kind (the
    position and the rotation of full poses, and each point: the tool origin, each marker) has
    its own standard deviation ``s_g``, re-estimated after each solve as
-   ``s_g^2 <- sum_{i in g} w_i e_i^2 / sum_{i in g} (1 - h_i)`` with ``h_i`` the leverage of
-   row ``i`` (the diagonal of the hat matrix of the whitened, weighted system), until they are
-   stable. A kind with less than :data:`MIN_REDUNDANCY` redundancy takes the pooled length
-   scale of all kinds in mm. Given standard deviations (``noise``) are used as they are.
+   ``s_g^2 <- sum_{i in g} w_i e_i^2 / (kappa sum_{i in g} (1 - h_i))`` (``kappa``: the
+   Huber weights' consistency factor :data:`HUBER_CONSISTENCY`, 1 for least squares; units
+   beyond the outlier bound left out) with ``h_i`` the leverage of row ``i`` (the diagonal of
+   the hat matrix of the whitened, weighted system), until they are stable. A kind with less
+   than :data:`MIN_REDUNDANCY` redundancy takes the pooled length scale of all kinds in mm.
+   Given standard deviations (``noise``) are used as they are.
 4. **Robust loss**: Huber weights per observed unit (one point, or the position or the rotation
    of one full pose), ``w = min(1, c / z)`` with ``z`` the unit's standardised residual norm
    (divided by ``sqrt(1 - h)``) and ``c`` the 95 % point of the chi distribution with 3 degrees
@@ -43,6 +45,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+import scipy.integrate
 import scipy.stats
 
 from ..arm import Arm
@@ -63,6 +66,20 @@ from .registration import Start, initial_guess
 
 UNIT_HUBER_C = math.sqrt(float(scipy.stats.chi2.ppf(0.95, 3)))
 """Huber threshold on a unit's standardised residual norm (2.80: 95 % of clean units pass)."""
+
+
+def _huber_consistency(c: float) -> float:
+    """``E[w(z) |z|^2] / 3`` for a standard normal 3-vector ``z`` and Huber weights
+    ``w = min(1, c / |z|)``: the factor by which Huber-weighted squared residuals underestimate
+    the variance (0.98 at ``c = 2.80``)."""
+    chi3 = scipy.stats.chi(3)
+    inner = scipy.integrate.quad(lambda r: r * r * chi3.pdf(r), 0.0, c)[0]
+    outer = scipy.integrate.quad(lambda r: c * r * chi3.pdf(r), c, np.inf)[0]
+    return (inner + outer) / 3.0
+
+
+HUBER_CONSISTENCY = _huber_consistency(UNIT_HUBER_C)
+"""The scale estimates of a Huber fit are divided by it (unbiased for Gaussian noise)."""
 FAMILY_ALPHA = 0.01
 """Family-wise false-alarm rate of the outlier flags."""
 MIN_REDUNDANCY = 3.0
@@ -307,8 +324,9 @@ def calibrate_auto(
         old = (sp, sr, s_pts.copy(), w_pos.copy(), w_rot.copy(), w_pts.copy())
         if not given:
             sp, sr, s_pts = _variance_components(
-                r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, keep_pts
-            )
+                r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, keep_pts,
+                HUBER_CONSISTENCY if loss == "huber" and rounds > 1 else 1.0,
+            )  # fmt: skip
         z_pos, z_rot, z_pts = _standardised(lin(B @ u, False)[0], h, obs)
         keep_pos = pose_mask & ~(z_pos > threshold)
         keep_rot = pose_mask & ~(z_rot > threshold)
@@ -472,10 +490,11 @@ def _unit_rows(obs: Observations):
     return pos, rot, pts
 
 
-def _variance_components(r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, seen):
-    """One Förstner update of the scales (module docstring) over the units kept."""
+def _variance_components(r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, seen, consistency=1.0):
+    """One Förstner update of the scales (module docstring) over the units kept; the redundancy
+    is scaled by ``consistency`` (:data:`HUBER_CONSISTENCY` for Huber-weighted residuals)."""
     pos, rot, pts = _unit_rows(obs)
-    red = 1.0 - h
+    red = (1.0 - h) * consistency
     groups = []  # (sum of w e^2 in the group's unit, redundancy)
     pose_mask = keep_pos | keep_rot
     ss_pos = float(np.sum((r[pos[keep_pos]] * sp) ** 2))
