@@ -11,8 +11,9 @@ three markers measured with isotropic Gaussian noise ``sigma`` per coordinate, e
 hidden with probability ``--occlusion``. The seed changes every trial, so the truth, the poses
 and the noise all change. The fit is the default estimator,
 :func:`cdra_jax.calibration.calibrate_auto` as ``cdra-jax calibrate`` calls it (noise scales
-estimated from the data, Huber loss, base registered by Kabsch, markers identified with the
-frames). The test set is ``--test-poses`` other random states, all three markers seen.
+estimated from the data, Huber loss, units beyond the outlier bound left out, base registered by
+Kabsch, markers identified with the frames). The test set is ``--test-poses`` other random
+states, all three markers seen.
 
 The bound: the parameters are those of the estimator (error twists of the 7 frames and the
 three marker corrections, 51, of which 33 are identifiable: 2 per joint axis and the 6 of the
@@ -30,7 +31,7 @@ Reported per noise level, over the trials (first table):
   ones; ``bound``: ``sqrt(mean b)``;
 * ``efficiency``: ``mean b / mean(squared prediction error)`` (1: the bound), with a bootstrap
   95 % interval over the trials;
-* ``first-order ML, same noise``: the RMS of ``J_t J^+ eps``, the prediction error of the
+* ``first-order efficient, same noise``: the RMS of ``J_t J^+ eps``, the prediction error of the
   efficient estimator linearised at the truth, from the same noise ``eps`` as the fit (its mean
   square estimates ``b``); ``efficiency vs it``: its mean square over the estimator's, paired
   trial by trial, so the noise of the draws largely cancels (a much narrower interval; 1: the
@@ -53,9 +54,9 @@ estimated) run the same trials with those parts of the estimator switched off.
 
 Usage::
 
-    python benchmarks/markers.py                          # 100 trials per noise level
-    python benchmarks/markers.py --trials 20 --noise 0.05 --json
-    python benchmarks/markers.py --loss ls --given-noise
+    python benchmarks/markers.py                          # 50 trials per noise level
+    python benchmarks/markers.py --trials 100 --json      # the measured tables
+    python benchmarks/markers.py --trials 100 --loss ls --given-noise
 """
 
 from __future__ import annotations
@@ -247,7 +248,7 @@ def main(argv: list[str] | None = None) -> dict:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="\n\n".join(__doc__.split("\n\n")[1:]),
     )
-    ap.add_argument("--trials", type=int, default=100, help="trials per noise level (100)")
+    ap.add_argument("--trials", type=int, default=50, help="trials per noise level (50)")
     ap.add_argument(
         "--noise",
         type=float,
@@ -290,6 +291,10 @@ def main(argv: list[str] | None = None) -> dict:
     for i, sigma in enumerate(args.noise):
         rows = [trial(arm, sigma, args.seed + 100_000 * i + k, args) for k in range(args.trials)]
         levels.append(summarise(sigma, rows))
+        print(
+            f"sigma {sigma:g} mm: {args.trials} trials, {time.perf_counter() - t_start:.0f} s",
+            file=sys.stderr,
+        )
     total = time.perf_counter() - t_start
 
     print(
@@ -304,7 +309,7 @@ def main(argv: list[str] | None = None) -> dict:
             "prediction RMS",
             "bound",
             "efficiency [95 %]",
-            "first-order ML, same noise",
+            "first-order efficient, same noise",
             "efficiency vs it [95 %]",
             "held-out RMS",
             "held-out bound",
