@@ -151,6 +151,12 @@ _LONG_FIRST = (
 # a second or more of CPU (mostly compiling solvers; measured per test on the full suite). Every
 # module keeps at least one cheap test in the quick loop. CI runs them all.
 _SLOW: dict[str, tuple[str, ...]] = {
+    "tests/test_markers.py": (
+        "test_cli_simulate_calibrate_model_out_validate_on_markers",
+        "test_the_guard_fires_when_an_unweighted_fit_is_worse_than_nominal",
+        "test_plan_poses_for_a_model_measured_by_markers",
+        "test_a_gross_point_error_is_flagged_and_down_weighted",
+    ),
     "tests/test_benchmark_baselines.py": (
         "test_baseline_calibrations_agree_with_the_paper_solver",
     ),
@@ -190,6 +196,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_identical_poses_keep_six_parameters_and_name_the_other_eighteen",
     ),
     "tests/test_diagnosis.py": (
+        "test_out_of_library_distortion_is_unattributed",
         "test_uniform_length_scale_is_absorbed",
         "test_without_noise_values_clean_recordings_give_none",
         "test_a_richer_form_is_refitted_and_reaches_the_noise_floor",
@@ -259,6 +266,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_sampler_returns_only_feasible_states_within_the_limits",
     ),
     "tests/test_physics.py": (
+        "test_refinements_are_richer_forms_of_a_tested_effect",
         "test_vocabulary_is_the_design_table",
         "test_zero_parameters_give_the_geometric_model_exactly",
         "test_backlash_and_drift_follow_their_auxiliaries",
