@@ -379,3 +379,9 @@ def test_validate_register_places_the_reference_in_the_device_frame(arm, truth):
     assert far > 300 and near < 30  # the tracker's pose, then only the frame and marker errors
     assert registered.to_dict()["position_error_mm"] == plain.to_dict()["position_error_mm"]
     assert "registered to the measuring device's frame" in registered.report()
+
+
+def test_the_auto_solver_asks_for_float64(arm):
+    q = np.zeros((4, arm.dof))
+    with jax.enable_x64(False), pytest.raises(ValueError, match="needs float64"):
+        calibrate_auto(arm, q, None, np.zeros((4, 3, 3)), ("a", "b", "c"))

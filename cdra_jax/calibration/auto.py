@@ -44,6 +44,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
+import jax
 import numpy as np
 import scipy.integrate
 import scipy.stats
@@ -225,6 +226,12 @@ def calibrate_auto(
     """
     if loss not in ("huber", "ls"):
         raise ValueError(f"loss must be 'huber' or 'ls', got {loss!r}")
+    if not jax.config.read("jax_enable_x64"):
+        raise ValueError(
+            "calibrate_auto needs float64 (its scale estimates reach the rounding level of "
+            "float32 on good data): call jax.config.update('jax_enable_x64', True) first, as "
+            "the command line and the notebooks do"
+        )
     point_names = tuple(point_names)
     # Rows padded to a bucket size: data files of different lengths reuse compiled programs.
     m_data = int(np.shape(q)[0])
