@@ -39,8 +39,8 @@ MARKERS = (
     Marker("b", (30.0, -20.0, 10.0), True),
     Marker("c", (-25.0, -20.0, 40.0), False),
 )
-TRUE_XYZ = np.array([[14.0, 52.0, 8.0], [47.0, -36.0, 22.0], [-25.0, -20.0, 40.0]])
-"""True marker positions: the calibrated ones up to 20 mm per component from the model's."""
+TRUE_XYZ = np.array([[20.0, 60.0, 5.0], [50.0, -40.0, 30.0], [-25.0, -20.0, 40.0]])
+"""True marker positions: the two calibrated ones 20 mm per component from the model's."""
 DEVICE = np.asarray(lie.from_xyz_rotvec(np.array([400.0, 0.0, 0.0]), np.array([0, 0, np.pi / 2])))
 """The robot world frame in the measuring device's frame: 0.4 m and 90 degrees away."""
 
@@ -195,7 +195,8 @@ def test_rigid_registration_recovers_a_rigid_motion_and_refuses_a_line():
 
 
 def test_markers_with_occlusions_recover_the_arm_from_a_far_device_frame(arm, truth):
-    # Noise-free, base 0.4 m / 90 degrees off, two markers 20 mm off: every prediction exact.
+    # Noise-free, base 0.4 m / 90 degrees off, two markers 20 mm off per component: every
+    # prediction exact.
     q, _, pts = _points(truth, 30, key=1)
     sol = calibrate_auto(arm, q, None, pts, ("a", "b", "c"))
     assert sol.converged and sol.start.registered and sol.start.placed == (0, 1)
