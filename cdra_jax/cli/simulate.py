@@ -64,7 +64,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="measure points instead of full tool poses: the model's [[markers]] "
         "(measured.<marker>.x/y/z), or the tool origin (measured.x/y/z) for a model without "
-        "markers; --noise-pos is then the std of each point",
+        "markers; --noise-pos is then the std of each point coordinate, and --noise-rot is not "
+        "needed",
     )
     p.add_argument(
         "--occlusion",
@@ -96,6 +97,9 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``simulate``; returns the exit code (0)."""
+    if args.points and args.noise_pos is not None and args.noise_rot is None:
+        # Points carry no orientation: the rotation std is not used; any valid value will do.
+        args.noise_rot = 1e-3
     noise = common.noise(args)
     check_range("--poses", args.poses)
     if args.errors != "random" and (args.d_v is not None or args.d_w is not None):

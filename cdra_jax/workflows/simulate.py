@@ -154,7 +154,8 @@ def simulate(
             (``--truth`` of an earlier simulation: its ``markers`` table, when present, gives
             the true marker positions too, so that a second data set shares the first's truth).
         d_v, d_w: ranges of the random errors (default 1 mm and 0.05 rad, the paper's).
-        noise: Gaussian noise on the measured poses (std), or ``None`` for noise-free data.
+        noise: Gaussian noise on the measured poses (std), or ``None`` for noise-free data;
+            with ``points`` only its position std is used (per point coordinate).
         cables: write the states of modules with cables as cable lengths.
         cable_noise: std (mm) of Gaussian noise on each cable length (needs ``cables``).
         points: measure points instead of full poses: the model's markers
@@ -207,12 +208,15 @@ def simulate(
         is_random,
     )
     X, q, measured, actual_frames, actual_xyz, actual_rotvec = (np.asarray(a) for a in out)
-    noise_text = (
-        "none (noise-free)"
-        if noise is None
-        else f"position {float(noise.position_mm)!r} mm, rotation "
-        f"{float(noise.rotation_rad)!r} rad (std, Gaussian)"
-    )
+    if noise is None:
+        noise_text = "none (noise-free)"
+    elif points:
+        noise_text = f"{float(noise.position_mm)!r} mm per point coordinate (std, Gaussian)"
+    else:
+        noise_text = (
+            f"position {float(noise.position_mm)!r} mm, rotation "
+            f"{float(noise.rotation_rad)!r} rad (std, Gaussian)"
+        )
     comments = [
         f"cdra-jax {package_version()} simulate: model {arm.name} ({model_label}), "
         f"{poses} poses, seed {seed}",
@@ -310,7 +314,10 @@ def simulate(
         "d_w_rad": d_w if is_random else None,
         "noise": None
         if noise is None
-        else {"position_mm": float(noise.position_mm), "rotation_rad": float(noise.rotation_rad)},
+        else {
+            "position_mm": float(noise.position_mm),
+            "rotation_rad": None if points else float(noise.rotation_rad),
+        },
         "actual_frames": {
             name: {
                 "xyz": actual_xyz[j].tolist(),

@@ -33,7 +33,7 @@ TOML
 # about z in the tracker's frame; a fifth of the reflectors hidden per pose; the true reflector
 # positions up to 20 mm off the model's.
 device=(--device-frame 300 -250 100 0 0 1.5708)
-noise=(--noise-pos 0.03 --noise-rot 1e-4)
+noise=(--noise-pos 0.03)
 cdra-jax simulate --model "$ex/ur5_markers.toml" --poses 36 --seed 1 --points --occlusion 0.2 \
     --marker-error 20 "${noise[@]}" "${device[@]}" --out "$ex/fit.csv" --truth "$ex/truth.json" --force
 # Held-out poses of the same arm (same frame errors and reflectors: --errors truth.json).
