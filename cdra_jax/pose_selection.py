@@ -539,6 +539,11 @@ def select_from_pool(
     idx = np.asarray(idx)
     log_det = float(log_det_information(A[idx], W))
     log_det_greedy = float(log_det_information(A[np.asarray(idx_greedy)], W))
+    if not np.isfinite(log_det) and np.isfinite(log_det_greedy):
+        # The I-exchange may trade away a direction that the reference positions do not see
+        # (e.g. a tool orientation offset); a set that identifies the pool's whole subspace is
+        # preferred: keep the greedy set.
+        idx, log_det, n_swaps = np.asarray(idx_greedy), log_det_greedy, 0
     rms = float("nan")
     if noise is not None and arm.markers:
         rms = marker_prediction_rms(arm, pool[idx], noise, reference, rcond)
