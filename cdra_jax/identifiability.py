@@ -42,7 +42,7 @@ import scipy.linalg
 from jax.typing import ArrayLike
 
 from .arm import Arm, chain, module_poses
-from .calibration.linear import default_rcond
+from .calibration.linear import default_rcond, svd_rank
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
 from .calibration.validation import MIN_POSES, require_finite_states
 from .compilation import filter_jit
@@ -389,11 +389,7 @@ def report_from_jacobian(
     D = np.asarray(D, dtype=float)
     n = D.shape[1]
     rcond = default_rcond(D.dtype) if rcond is None else float(rcond)
-    _, s, Vt = np.linalg.svd(D, full_matrices=True)
-    s_full = np.zeros(n)
-    s_full[: s.size] = s
-    keep = s_full > rcond * s_full[0] if s_full[0] > 0 else np.zeros(n, bool)
-    rank = int(keep.sum())
+    s_full, Vt, rank = svd_rank(D, rcond)
     directions, null = readable_directions(Vt[rank:].T, names)
     text = tuple(format_combination(v, names) for v in directions)
     cond = scaled_svd(D, rcond).condition_number

@@ -51,7 +51,7 @@ import scipy.stats
 
 from ..arm import Arm
 from .gauge import GaugeFix, correction, to_nominal_gauge
-from .linear import default_rcond
+from .linear import svd_rank
 from .model import NoiseModel
 from .observations import (
     Observations,
@@ -62,6 +62,7 @@ from .observations import (
     marker_table,
     padded,
     raw_errors,
+    residual,
 )
 from .registration import Start, initial_guess
 
@@ -259,18 +260,25 @@ def calibrate_auto(
     w_rot = np.ones(m)
     w_pts = np.ones((m, P))
 
-    def sigmas(weighted):
+    def sigmas(weighted, scales=None):
+        """Per-row stds: the current scales (or ``scales``), with the robust weights."""
+        p_, r_, pts_ = (sp, sr, s_pts) if scales is None else scales
         inf = np.inf
         one = 1.0
         with np.errstate(divide="ignore"):
-            a = np.where(pose_mask, sp / np.sqrt(w_pos if weighted else one), inf)
-            b = np.where(pose_mask, sr / np.sqrt(w_rot if weighted else one), inf)
+            a = np.where(pose_mask, p_ / np.sqrt(w_pos if weighted else one), inf)
+            b = np.where(pose_mask, r_ / np.sqrt(w_rot if weighted else one), inf)
             wp = np.where(seen, w_pts, 1.0) if weighted else one
-            c = np.where(seen, s_pts[None, :] / np.sqrt(wp), inf)
+            c = np.where(seen, pts_[None, :] / np.sqrt(wp), inf)
         return a, b, c
 
-    def lin(theta, weighted=True):
-        a, b, c = sigmas(weighted)
+    def scaled_residual(theta):
+        """The residual whitened by the scales alone (no robust weights), for ``z``."""
+        a, b, c = sigmas(False)
+        return np.asarray(residual(theta, frames0, xyz0, obs, a, b, c, calibrated))
+
+    def lin(theta, scales=None):
+        a, b, c = sigmas(scales is None, scales)
         r, J = linearise(theta, frames0, xyz0, obs, a, b, c, calibrated)
         return np.asarray(r), np.asarray(J)
 
@@ -280,11 +288,7 @@ def calibrate_auto(
 
     # Gauge: the identifiable subspace at the start.
     _, J0 = lin(np.zeros(n))
-    _, s, Vt = np.linalg.svd(J0, full_matrices=True)
-    rc = default_rcond(J0.dtype) if rcond is None else float(rcond)
-    s_full = np.zeros(n)
-    s_full[: s.size] = s
-    rank = int(np.sum(s_full > rc * s_full[0])) if s_full[0] > 0 else 0
+    s_full, Vt, rank = svd_rank(J0, rcond)
     B = Vt[:rank].T / s_full[:rank]
     null_space = Vt[rank:]
 
@@ -334,7 +338,7 @@ def calibrate_auto(
                 r, h, obs, sp, sr, s_pts, keep_pos, keep_rot, keep_pts,
                 HUBER_CONSISTENCY if loss == "huber" and rounds > 1 else 1.0,
             )  # fmt: skip
-        z_pos, z_rot, z_pts = _standardised(lin(B @ u, False)[0], h, obs)
+        z_pos, z_rot, z_pts = _standardised(scaled_residual(B @ u), h, obs)
         keep_pos = pose_mask & ~(z_pos > threshold)
         keep_rot = pose_mask & ~(z_rot > threshold)
         keep_pts = seen & ~(z_pts > threshold)
@@ -367,9 +371,7 @@ def calibrate_auto(
     r, J = lin(theta)
     Ju = J @ B
     h = _leverage(Ju)
-    z_pos, z_rot, z_pts = _standardised(lin(theta, False)[0], h, obs)
-    sigma_final = (sp, sr, s_pts)
-    weights_final = (w_pos, w_rot, w_pts)
+    z_pos, z_rot, z_pts = _standardised(scaled_residual(theta), h, obs)
     try:
         cov_u = np.linalg.inv(Ju.T @ Ju)
     except np.linalg.LinAlgError:
@@ -381,11 +383,8 @@ def calibrate_auto(
     ):
         # An exact fit leaves the scales at the rounding level, where their ratio means nothing:
         # the identifiability and conditioning are then reported at the initial scales.
-        sp, sr, s_pts = INITIAL_SIGMA_MM, INITIAL_SIGMA_RAD, np.full(P, INITIAL_SIGMA_MM)
-        w_pos, w_rot, w_pts = np.ones(m), np.ones(m), np.ones((m, P))
-        start_jacobian = lin(np.zeros(n))[1]
-        sp, sr, s_pts = sigma_final
-        w_pos, w_rot, w_pts = weights_final
+        initial = (INITIAL_SIGMA_MM, INITIAL_SIGMA_RAD, np.full(P, INITIAL_SIGMA_MM))
+        start_jacobian = lin(np.zeros(n), initial)[1]
     else:
         start_jacobian = lin(np.zeros(n))[1]
     nan = np.nan

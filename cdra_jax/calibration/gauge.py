@@ -33,7 +33,7 @@ import jax
 import numpy as np
 
 from ..arm import error_twists
-from .linear import default_rcond
+from .linear import svd_rank
 from .observations import Observations, apply_parameters, linearise, predictions
 
 _error_twists = jax.jit(error_twists)
@@ -75,12 +75,7 @@ def null_basis(
     sp = np.where(np.asarray(obs.pose_mask), ones, np.inf)
     s_pt = np.where(np.asarray(obs.seen), 1.0, np.inf)
     _, J = linearise(np.zeros(n), frames, xyz, obs, sp, sp, s_pt, calibrated)
-    J = np.asarray(J)
-    _, s, Vt = np.linalg.svd(J, full_matrices=True)
-    s_full = np.zeros(n)
-    s_full[: s.size] = s
-    rc = default_rcond(J.dtype) if rcond is None else float(rcond)
-    rank = int(np.sum(s_full > rc * s_full[0])) if s_full[0] > 0 else 0
+    _, Vt, rank = svd_rank(J, rcond)
     return Vt[rank:]
 
 

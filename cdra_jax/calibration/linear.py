@@ -18,6 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg  # noqa: F401  (cho_solve)
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -207,3 +208,18 @@ def _range_factor(N: Array, cutoff: float) -> tuple[Array, Array, Array, Array]:
     pivots = jnp.max(L * L, axis=0) / jnp.max(jnp.diagonal(N))
     smallest = jnp.min(jnp.where(kept, pivots, jnp.inf))
     return L, C, rank, smallest
+
+
+def svd_rank(D, rcond: float | None = None):
+    """Host-side SVD of a stacked Jacobian ``D (rows, n)`` with the solvers' rank cut-off:
+    ``(s (n,), Vt (n, n), rank)``: singular values zero-padded to ``n``, the full right singular
+    basis (its rows from ``rank`` on span the null space) and the number of singular values
+    above ``rcond * s_max`` (default :func:`default_rcond`)."""
+    D = np.asarray(D, dtype=float)
+    n = D.shape[1]
+    _, s, Vt = np.linalg.svd(D, full_matrices=True)
+    s_full = np.zeros(n)
+    s_full[: s.size] = s
+    rc = default_rcond(D.dtype) if rcond is None else float(rcond)
+    rank = int(np.sum(s_full > rc * s_full[0])) if s_full[0] > 0 else 0
+    return s_full, Vt, rank

@@ -188,6 +188,10 @@ def whitened_residual(
     return jnp.concatenate([Y.reshape(-1), e.reshape(-1)])
 
 
+residual = eqx.filter_jit(whitened_residual)
+"""Compiled :func:`whitened_residual` (the residual alone, no Jacobian)."""
+
+
 @eqx.filter_jit
 def linearise(theta, frames0, xyz0, obs, sigma_pos, sigma_rot, sigma_pt, calibrated):
     """``(r, J)``: :func:`whitened_residual` and its Jacobian in ``theta`` (forward mode)."""
