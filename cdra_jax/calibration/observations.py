@@ -218,3 +218,19 @@ def raw_errors(frames, xyz, obs: Observations) -> tuple[Array, Array, Array]:
     ang = jnp.where(obs.pose_mask, ang, nan)
     e = jnp.where(obs.seen[..., None], obs.points - pts, nan)
     return dpos, ang, e
+
+
+def error_table(frames, xyz, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """``(position (m, 1 + P) mm, rotation (m,) rad)``: the norm of each row's full-pose
+    position error then of each point's error (NaN where not measured), and the full pose's
+    rotation angle (NaN without one), from :func:`raw_errors`."""
+    dpos, ang, e = (np.asarray(a, dtype=float) for a in raw_errors(frames, xyz, obs))
+    pos = np.concatenate([np.linalg.norm(dpos, axis=-1)[:, None], np.linalg.norm(e, axis=-1)], 1)
+    return pos, ang
+
+
+def row_means(position: np.ndarray) -> np.ndarray:
+    """``(m,)`` mean of each row's measured position errors (NaN for a row with none)."""
+    seen = np.isfinite(position)
+    with np.errstate(invalid="ignore"):
+        return np.where(seen, position, 0.0).sum(-1) / np.where(seen.any(-1), seen.sum(-1), np.nan)

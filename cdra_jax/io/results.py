@@ -69,7 +69,7 @@ from .. import lie
 from ..arm import TWIST_COMPONENTS, Arm, tool_pose
 from ..calibration.auto import AutoSolution
 from ..calibration.model import NoiseModel, pose_errors
-from ..calibration.observations import Observations, raw_errors
+from ..calibration.observations import Observations, error_table, row_means
 from ..calibration.robust import OUTLIER_THRESHOLD, RobustSolution, standardized_residuals
 from ..calibration.solution import CalibrationSolution, result_messages, result_names
 from ..compilation import filter_jit
@@ -481,25 +481,15 @@ def auto_result_to_dict(
     pose_mask = np.asarray(obs.pose_mask)
     seen = np.asarray(obs.seen)
     start_frames, start_xyz = sol.start.frames, sol.start.xyz
-    err0 = [np.asarray(a) for a in raw_errors(start_frames, start_xyz, obs)]
-    err1 = [np.asarray(a) for a in raw_errors(sol.frames, sol.xyz, obs)]
+    pos0, rot0 = error_table(start_frames, start_xyz, obs)
+    pos1, rot1 = error_table(sol.frames, sol.xyz, obs)
+    mean0, mean1 = row_means(pos0), row_means(pos1)
     threshold = sol.outlier_threshold
-
-    def row_numbers(err, i):
-        dpos, ang, e = err
-        norms = []
-        if pose_mask[i]:
-            norms.append(float(np.linalg.norm(dpos[i])))
-        norms += [float(np.linalg.norm(e[i, j])) for j in range(e.shape[1]) if seen[i, j]]
-        pos = sum(norms) / len(norms) if norms else math.nan
-        rot = float(ang[i]) if pose_mask[i] else math.nan
-        return pos, rot
 
     residuals = []
     flagged_units: list[str] = []
     for i in range(m):
-        p0, r0 = row_numbers(err0, i)
-        p1, r1 = row_numbers(err1, i)
+        p0, r0, p1, r1 = mean0[i], rot0[i], mean1[i], rot1[i]
         zs = [sol.z_position[i], sol.z_rotation[i], *sol.z_points[i]]
         ws = [sol.weights_position[i], sol.weights_rotation[i], *sol.weights_points[i]]
         zs = [float(z) for z in zs if np.isfinite(z)]
@@ -525,8 +515,8 @@ def auto_result_to_dict(
         if seen.shape[1]:
             row["points"] = {
                 sol.point_names[j]: {
-                    "nominal_mm": _num(np.linalg.norm(err0[2][i, j])),
-                    "calibrated_mm": _num(np.linalg.norm(err1[2][i, j])),
+                    "nominal_mm": _num(pos0[i, j + 1]),
+                    "calibrated_mm": _num(pos1[i, j + 1]),
                     "z": _num(sol.z_points[i, j]),
                     "weight": _num(sol.weights_points[i, j]),
                 }

@@ -22,7 +22,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..arm import Arm
-from ..calibration.observations import make_observations, marker_table, raw_errors
+from ..calibration.observations import error_table, make_observations, marker_table, row_means
 from ..calibration.registration import initial_guess
 from ..io import Measurements, calibrated_arm_from_result, load_result
 from ..plots import validation_figure
@@ -47,17 +47,14 @@ class PredictionErrors(NamedTuple):
     @property
     def per_row_position_mm(self) -> np.ndarray:
         """``(m,)`` mean position error over each row's measured positions."""
-        e = self.position_mm
-        seen = np.isfinite(e)
-        return np.where(seen, e, 0.0).sum(-1) / np.maximum(seen.sum(-1), 1)
+        return row_means(self.position_mm)
 
 
 def prediction_errors(arm: Arm, meas: Measurements) -> PredictionErrors:
     """The errors of ``arm``'s predictions on every measured position and rotation of ``meas``."""
     obs = make_observations(arm, meas.q, meas.full_poses, meas.points)
     xyz, _ = marker_table(arm, meas.point_names)
-    dpos, ang, e = (np.asarray(a, dtype=float) for a in raw_errors(arm.frames, xyz, obs))
-    pos = np.concatenate([np.linalg.norm(dpos, axis=-1)[:, None], np.linalg.norm(e, axis=-1)], 1)
+    pos, ang = error_table(arm.frames, xyz, obs)
     return PredictionErrors(pos, ang, ("pose", *meas.point_names))
 
 
