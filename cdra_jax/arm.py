@@ -214,6 +214,71 @@ class Marker:
         object.__setattr__(self, "xyz", xyz)
 
 
+@dataclasses.dataclass(frozen=True)
+class EffectRecord:
+    """A non-geometric effect of the model (a ``[[effects]]`` entry of the model file), as plain
+    data: which effect of the physics vocabulary (:mod:`cdra_jax.physics`), where, which
+    variant, and the values of its named parameters with their units.
+
+    The arm only carries the records; :func:`cdra_jax.physics.model_effects` turns them into
+    the vocabulary's effects and a parameter vector, and checks names, locations and units.
+
+    Attributes:
+        name: the effect's vocabulary name, e.g. ``"periodic_error"``.
+        location: the module or frame it sits at, e.g. ``"elbow"``.
+        variant: which form of the effect, e.g. ``"k=1"`` (``""``: the vocabulary's first).
+        parameters: ``(name, value, unit)`` per parameter, in the effect's order, e.g.
+            ``(("q_sin1", 0.002, "rad"), ("q_cos1", -0.001, "rad"))``.
+    """
+
+    name: str
+    location: str
+    variant: str = ""
+    parameters: tuple[tuple[str, float, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        params = []
+        for p in self.parameters:
+            if len(p) != 3:
+                raise ValueError(
+                    f"effect {self.label}: each parameter must be (name, value, unit), got {p!r}"
+                )
+            name, value, unit = p
+            value = float(value)
+            if not np.isfinite(value):
+                raise ValueError(f"effect {self.label}: parameter {name!r} is not finite: {value}")
+            params.append((str(name), value, str(unit)))
+        names = [p[0] for p in params]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"effect {self.label}: parameter names repeated: {dup}")
+        object.__setattr__(self, "parameters", tuple(params))
+
+    @property
+    def label(self) -> str:
+        """``"<effect>@<location>"`` with the variant in brackets when there is one."""
+        return f"{self.name}@{self.location}" + (f" ({self.variant})" if self.variant else "")
+
+    @property
+    def values(self) -> tuple[float, ...]:
+        """The parameter values in order."""
+        return tuple(p[1] for p in self.parameters)
+
+    def with_values(self, values: Sequence[float]) -> EffectRecord:
+        """The same effect with other parameter values (names and units kept)."""
+        values = [float(v) for v in values]
+        if len(values) != len(self.parameters):
+            raise ValueError(
+                f"effect {self.label}: {len(self.parameters)} parameters, got {len(values)} values"
+            )
+        return dataclasses.replace(
+            self,
+            parameters=tuple(
+                (n, v, u) for (n, _, u), v in zip(self.parameters, values, strict=True)
+            ),
+        )
+
+
 class Arm(eqx.Module):
     """A modular arm: ``frames[0] M_1 frames[1] ... M_K frames[K]`` (Eq. 1).
 
@@ -224,6 +289,10 @@ class Arm(eqx.Module):
         name, description: free text.
         gravity: gravity vector in the world frame, m/s^2.
         markers: measured points on the tool (:class:`Marker`), in the order of the model file.
+        effects: non-geometric physics of the model (:class:`EffectRecord`, the model file's
+            ``[[effects]]``), in file order; evaluated by :mod:`cdra_jax.physics`. The
+            geometric chain here (:func:`tool_pose`) ignores them; every command predicts with
+            :func:`cdra_jax.physics.model_tool_pose`, which adds them.
     """
 
     frames: Array
@@ -233,6 +302,7 @@ class Arm(eqx.Module):
     description: str = eqx.field(static=True, default="")
     gravity: Array = eqx.field(default_factory=lambda: jnp.array([0.0, 0.0, -9.81]))
     markers: tuple[Marker, ...] = eqx.field(static=True, default=())
+    effects: tuple[EffectRecord, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self) -> None:
         k = len(self.modules)
@@ -253,6 +323,15 @@ class Arm(eqx.Module):
         dup = sorted({n for n in marker_names if marker_names.count(n) > 1})
         if dup:
             raise ValueError(f"arm {self.name!r}: marker names must be unique: {dup}")
+        for e in self.effects:
+            if not isinstance(e, EffectRecord):
+                raise ValueError(f"arm {self.name!r}: effects must be EffectRecord, got {e!r}")
+        keys = [(e.name, e.location, e.variant) for e in self.effects]
+        dup = sorted(
+            {e.label for e, k in zip(self.effects, keys, strict=True) if keys.count(k) > 1}
+        )
+        if dup:
+            raise ValueError(f"arm {self.name!r}: an effect is given twice: {dup}")
 
     def marker(self, name: str) -> Marker:
         """The marker called ``name`` (``ValueError`` naming the declared ones otherwise)."""
@@ -265,6 +344,11 @@ class Arm(eqx.Module):
     def with_markers(self, markers: Sequence[Marker]) -> Arm:
         """The same arm with other markers (e.g. calibrated positions)."""
         return dataclasses.replace(self, markers=tuple(markers))
+
+    def with_effects(self, effects: Sequence[EffectRecord]) -> Arm:
+        """The same arm with other effect records (e.g. refitted values, or ``()``: the
+        geometric model alone)."""
+        return dataclasses.replace(self, effects=tuple(effects))
 
     @property
     def dof(self) -> int:

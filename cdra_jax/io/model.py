@@ -25,6 +25,18 @@ Format (see the README for a complete example)::
     xyz = [0.0, 40.0, 25.0]          # mm, tool frame
     calibrate = true                 # optional: the position is rough, identify it
 
+    [[effects]]                      # optional: non-geometric physics (cdra_jax.physics)
+    effect = "periodic_error"        # a name of the physics vocabulary
+    location = "elbow"               # the module or frame it sits at
+    variant = "k=1"                  # optional: which form (default: the vocabulary's first)
+    [effects.parameters]             # every parameter of the effect, with its unit
+    q_sin1 = { value = 0.002, unit = "rad" }
+    q_cos1 = { value = -0.001, unit = "rad" }
+
+Effect entries are checked here for their structure (names, numbers, unit strings); whether
+the effect, location, variant, parameter names and units exist in the vocabulary is checked by
+:func:`cdra_jax.physics.model_effects` (every command calls it on loading a model).
+
 Frames are written back as ``xyz`` + ``rotvec`` (floats printed with all 17 significant digits,
 reproducing the matrix to ~1e-16), or as ``matrix`` with ``exact=True`` (bit-exact round trip).
 """
@@ -44,7 +56,7 @@ import numpy as np
 import tomli_w
 
 from .. import lie
-from ..arm import MODULE_KINDS, Arm, Marker, Module
+from ..arm import MODULE_KINDS, Arm, EffectRecord, Marker, Module
 from ..compilation import jit
 from .files import write_text_atomic
 
@@ -317,7 +329,9 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
     """Build an :class:`Arm` from the parsed TOML mapping (``source`` names it in errors)."""
     if not isinstance(spec.get("name"), str):
         raise _err(source, "top level", "needs a 'name' (string)")
-    unknown = sorted(set(spec) - {"name", "description", "gravity", "frames", "modules", "markers"})
+    unknown = sorted(
+        set(spec) - {"name", "description", "gravity", "frames", "modules", "markers", "effects"}
+    )
     if unknown:
         raise _err(source, "top level", f"unknown keys {unknown}")
     if not isinstance(spec.get("description", ""), str):
@@ -351,6 +365,7 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
         raise _err(source, "top level", f"frame and module names must be unique, repeated: {dup}")
     gravity = _vector(source, "gravity", spec.get("gravity", [0.0, 0.0, -9.81]), 3)
     markers = _markers(source, spec.get("markers", []))
+    effects = effects_from_list(spec.get("effects", []), source)
     return Arm(
         frames=jnp.asarray(mats),
         modules=mods,
@@ -359,7 +374,89 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
         description=spec.get("description", ""),
         gravity=jnp.asarray(gravity),
         markers=markers,
+        effects=effects,
     )
+
+
+EFFECT_KEYS = ("effect", "location", "variant", "parameters")
+"""Keys of an ``[[effects]]`` entry."""
+
+
+def effects_from_list(specs: Any, source: str = "<model>") -> tuple[EffectRecord, ...]:
+    """The ``[[effects]]`` tables (or the same list in a result or diagnosis JSON) as
+    :class:`~cdra_jax.arm.EffectRecord`: ``effect``, ``location``, optional ``variant`` and a
+    ``parameters`` table ``name = { value = <number>, unit = "<unit>" }``. Errors name
+    ``source``, the entry and the key."""
+    if not isinstance(specs, list):
+        raise _err(source, "effects", f"expected [[effects]] tables, got {_short(specs)}")
+    out: list[EffectRecord] = []
+    for i, spec in enumerate(specs):
+        if not isinstance(spec, Mapping):
+            raise _err(source, f"effects[{i}]", f"expected a table ([[effects]]), got {spec!r}")
+        for key in ("effect", "location"):
+            v = spec.get(key)
+            if not isinstance(v, str) or not v:
+                raise _err(
+                    source,
+                    f"effects[{i}].{key}",
+                    f"needs '{key}' (a string: the "
+                    + ("vocabulary name" if key == "effect" else "module or frame name")
+                    + f"), got {_short(v)}",
+                )
+        where = f"effects[{i}] ({spec['effect']}@{spec['location']})"
+        unknown = sorted(set(spec) - set(EFFECT_KEYS))
+        if unknown:
+            raise _err(source, where, f"unknown keys {unknown}; known: {list(EFFECT_KEYS)}")
+        variant = spec.get("variant", "")
+        if not isinstance(variant, str):
+            raise _err(source, f"{where}.variant", f"expected a string, got {_short(variant)}")
+        params = spec.get("parameters")
+        if not isinstance(params, Mapping) or not params:
+            raise _err(
+                source,
+                f"{where}.parameters",
+                "expected a table of the effect's parameters, each "
+                'name = { value = <number>, unit = "<unit>" }, got ' + _short(params),
+            )
+        values = []
+        for name, p in params.items():
+            at = f"{where}.parameters.{name}"
+            if not isinstance(p, Mapping) or set(p) != {"value", "unit"}:
+                raise _err(
+                    source, at, f'expected {{ value = <number>, unit = "<unit>" }}, got {_short(p)}'
+                )
+            v, unit = p["value"], p["unit"]
+            if not _is_number(v) or not _finite(v):
+                raise _err(source, f"{at}.value", f"expected a finite number, got {_short(v)}")
+            if not isinstance(unit, str):
+                raise _err(source, f"{at}.unit", f"expected a string, got {_short(unit)}")
+            values.append((str(name), float(v), unit))
+        record = EffectRecord(
+            name=spec["effect"],
+            location=spec["location"],
+            variant=variant,
+            parameters=tuple(values),
+        )
+        if any(
+            (e.name, e.location, e.variant) == (record.name, record.location, record.variant)
+            for e in out
+        ):
+            raise _err(source, where, f"effect {record.label} is given twice")
+        out.append(record)
+    return tuple(out)
+
+
+def effects_to_list(effects: Any) -> list[dict[str, Any]]:
+    """The ``[[effects]]`` tables of effect records (the inverse of :func:`effects_from_list`;
+    values as Python floats, which TOML and JSON write with all their digits)."""
+    out = []
+    for e in effects:
+        d: dict[str, Any] = {"effect": e.name, "location": e.location}
+        if e.variant:
+            d["variant"] = e.variant
+        d["parameters"] = {n: {"value": float(v), "unit": u} for n, v, u in e.parameters}
+        out.append(d)
+    return out
 
 
 def _markers(source: str, specs: Any) -> tuple[Marker, ...]:
@@ -491,6 +588,8 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
             {"name": mk.name, "xyz": list(mk.xyz), **({"calibrate": True} if mk.calibrate else {})}
             for mk in arm.markers
         ]
+    if arm.effects:
+        out["effects"] = effects_to_list(arm.effects)
     return out
 
 

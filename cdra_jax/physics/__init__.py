@@ -2,7 +2,9 @@
 
 :mod:`.base` holds the extended forward model (:class:`Features`, :func:`corrected_tool_pose`,
 :class:`Candidate`), :mod:`.effects` the vocabulary of design.md, :mod:`.loads` the gravity
-loads on the links, :mod:`.probes` the generic location probes used by the diagnosis.
+loads on the links, :mod:`.probes` the generic location probes used by the diagnosis,
+:mod:`.model` the model file's own ``[[effects]]`` (checked, predicted with), :mod:`.refit`
+the joint calibration of frames and effect parameters.
 """
 
 from __future__ import annotations
@@ -29,7 +31,23 @@ from .effects import ThermalDrift as ThermalDrift
 from .effects import effect as effect
 from .loads import bending_deflection as bending_deflection
 from .loads import link_tip_loads as link_tip_loads
+from .model import check_effect_data as check_effect_data
+from .model import effect_candidate as effect_candidate
+from .model import effect_param_names as effect_param_names
+from .model import effect_param_units as effect_param_units
+from .model import effect_records as effect_records
+from .model import missing_effect_data as missing_effect_data
+from .model import model_effects as model_effects
+from .model import model_features as model_features
+from .model import model_tool_pose as model_tool_pose
+from .model import needed_aux as needed_aux
+from .model import with_effect_values as with_effect_values
+from .model import with_effects as with_effects
 from .probes import PROBES as PROBES
+from .refit import EffectRefit as EffectRefit
+from .refit import extended_residual as extended_residual
+from .refit import extended_tool_pose as extended_tool_pose
+from .refit import refine as refine
 
 
 def candidates(
