@@ -386,8 +386,15 @@ def not_held(arm: Arm) -> list[str]:
     axes and limits."""
     d = arm_to_dict(arm)
     out = []
-    for key in sorted(set(d) - {"name", "description", "gravity", "frames", "modules"}):
+    for key in sorted(set(d) - {"name", "description", "gravity", "frames", "modules", "effects"}):
         out.append(f"the model's [[{key}]] (a URDF has no place for them)")
+    for e in arm.effects:
+        values = ", ".join(f"{n} = {v:.6g} {u}" for n, v, u in e.parameters)
+        out.append(
+            f"the model's effect {e.label} ({values}): a URDF holds the geometric chain only, "
+            "so predictions from the exported file lack this physics; keep the model TOML "
+            "for them"
+        )
     g = np.asarray(d.get("gravity", _DEFAULT_GRAVITY), dtype=float)
     if not np.allclose(g, _DEFAULT_GRAVITY, rtol=0, atol=1e-12):
         out.append(f"gravity {g.tolist()} m/s^2 (a URDF has no gravity)")

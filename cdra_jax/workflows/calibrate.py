@@ -9,6 +9,14 @@ model), the outlier flags, and the implausibly-large-error check. It returns a
 :class:`CalibrationRun` whose :meth:`~CalibrationRun.to_dict` is the result file contract of
 ``shared/design.md`` and whose :meth:`~CalibrationRun.report` is what ``cdra-jax calibrate``
 prints. The command line and the notebooks call this same function.
+
+A model with ``[[effects]]`` is calibrated with them: the frame errors and the effects'
+parameters are refined jointly (:func:`cdra_jax.physics.refine`, Levenberg-Marquardt on the
+whitened Eq. 7 residual of the extended model, noise scales given or estimated); the result
+holds the refined effects (``effects``, the model file's entries, and ``effect_parameters``
+with start values, standard deviations and 95 % intervals) and the calibrated model
+(:attr:`CalibrationRun.calibrated_arm`, ``--model-out``) carries them. This needs full
+measured tool poses and the auxiliary columns the effects use.
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from matplotlib.figure import Figure
 
+from .. import lie
 from ..arm import TWIST_COMPONENTS, Arm, error_twists
 from ..calibration import (
     NoiseModel,
@@ -36,6 +45,8 @@ from ..calibration import (
     make_observations,
     to_nominal_gauge,
 )
+from ..calibration.model import pose_errors, residual_twist, whitening
+from ..calibration.robust import OUTLIER_THRESHOLD
 from ..compilation import cached_filter_jit
 from ..conditioning import conditioning, conditioning_from_jacobian
 from ..identifiability import (
@@ -54,6 +65,16 @@ from ..io import (
     result_to_dict,
     save_model,
     save_result,
+)
+from ..io.model import effects_from_list, effects_to_list
+from ..io.results import RESULT_FORMAT, RESULT_FORMAT_VERSION, package_version
+from ..physics import (
+    check_effect_data,
+    effect_param_names,
+    effect_param_units,
+    extended_tool_pose,
+    model_effects,
+    refine,
 )
 from ..plots import calibration_residuals_figure
 from ..uncertainty import analyze_uncertainty
@@ -221,8 +242,9 @@ class CalibrationRun:
 
     @property
     def calibrated_arm(self) -> Arm:
-        """The calibrated model (Eq. 19: the identified errors applied to the nominal frames)."""
-        return calibrated_arm_from_result(self.result, self.arm)
+        """The calibrated model (Eq. 19: the identified errors applied to the nominal frames;
+        the refined effects where the model has ``[[effects]]``)."""
+        return result_arm(self.result, self.arm)
 
     def to_dict(self) -> dict[str, Any]:
         """The result mapping (what :meth:`save` writes as JSON)."""
@@ -301,6 +323,19 @@ def calibrate(
     if not meas.has_measurements:
         raise ValueError(
             f"{data_label}: no measured tool poses or points (measured.* columns) to fit"
+        )
+    if arm.effects:
+        return _calibrate_effects(
+            arm,
+            meas,
+            noise,
+            solver,
+            loss,
+            reject_outliers,
+            max_iterations,
+            model_label,
+            data_label,
+            sha,
         )
     points = meas.measured is None
     if solver is None:
@@ -396,6 +431,248 @@ def calibrate(
         model_label=model_label,
         data_label=data_label,
     )
+
+
+def result_arm(result: dict[str, Any] | Any, nominal: Arm, source: str = "<result>") -> Arm:
+    """The calibrated model of a result: ``nominal`` with its calibrated frames and markers
+    (Eq. 19) and, when the calibration refined the model's effects (``effects``), their
+    refined values."""
+    arm = calibrated_arm_from_result(result, nominal)
+    if result.get("effects"):
+        arm = arm.with_effects(effects_from_list(result["effects"], f"{source}: effects"))
+        model_effects(arm, source)
+    return arm
+
+
+EFFECTS_GAUGE_TEXT = (
+    "the model's frames and effects refined jointly by Levenberg-Marquardt with minimum-norm "
+    "steps from the model: the identified correction has (to first order) no component along "
+    "the unidentifiable directions of the extended model"
+)
+
+
+def _calibrate_effects(
+    arm: Arm,
+    meas: Measurements,
+    noise: NoiseModel | None,
+    solver: str | None,
+    loss: str | None,
+    reject_outliers: bool,
+    max_iterations: int | None,
+    model_label: str,
+    data_label: str,
+    sha: str | None,
+) -> CalibrationRun:
+    """Calibrate a model with ``[[effects]]``: frames and effect parameters jointly."""
+    labels = ", ".join(e.label for e in arm.effects)
+    if meas.measured is None:
+        raise ValueError(
+            f"{data_label}: the model's [[effects]] ({labels}) are refined with the frames from "
+            "full measured tool poses (position and orientation); these data measure points "
+            "only. Measure full poses, or calibrate the model without its [[effects]] (the "
+            "effects then stay as given in the model file)"
+        )
+    if solver not in (None, "auto", "lm"):
+        raise ValueError(
+            f"solver {solver}: a model with [[effects]] ({labels}) is calibrated by "
+            "Levenberg-Marquardt on the frames and the effects' parameters jointly; use the "
+            "default (or lm)"
+        )
+    if loss not in (None, "ls") or reject_outliers:
+        raise ValueError(
+            f"a model with [[effects]] ({labels}) is calibrated by least squares; robust losses "
+            "and reject_outliers are not available with effects"
+        )
+    check_effect_data(arm, meas.aux, data_label)
+    plausibility = list(check_plausibility(arm, meas))
+    fit = refine(
+        arm,
+        meas.q,
+        meas.measured,
+        meas.aux,
+        noise,
+        max_iterations=50 if max_iterations is None else max_iterations,
+    )
+    n = arm.n_params
+    names = effect_param_names(arm)
+    units = effect_param_units(arm)
+    J = fit.jacobian
+    ident = report_from_jacobian(
+        J[:, :n], arm.param_names, meas.m, warnings=pose_set_warnings(arm, meas.q)
+    )
+    cond = conditioning_from_jacobian(J[:, :n], arm.param_names)
+    q = jnp.asarray(meas.q)
+    measured = jnp.asarray(meas.measured)
+    aux = {k: jnp.asarray(v, q.dtype) for k, v in meas.aux.items()}
+    y0 = np.concatenate([np.zeros(n), fit.theta_start])
+    y1 = np.concatenate([fit.errors.reshape(-1), fit.theta])
+    cands = fit.candidates
+    tool0 = extended_tool_pose(jnp.asarray(y0), arm, cands, q, aux)
+    tool1 = extended_tool_pose(jnp.asarray(y1), arm, cands, q, aux)
+    p0, r0 = (np.asarray(a, float) for a in pose_errors(measured, tool0))
+    p1, r1 = (np.asarray(a, float) for a in pose_errors(measured, tool1))
+    # Standardised residual per pose: RMS of its six whitened entries at the noise scales.
+    G = whitening(measured, fit.noise)
+    e = np.asarray(jnp.einsum("mij,mj->mi", G, residual_twist(measured, tool1)), float)
+    z = np.sqrt(np.mean(e * e, axis=1) * 6 * meas.m / max(6 * meas.m - fit.rank, 1))
+    flagged = z > OUTLIER_THRESHOLD
+    nxyz, nrv = (np.asarray(a, float) for a in lie.to_xyz_rotvec(jnp.asarray(arm.frames)))
+    cxyz, crv = (np.asarray(a, float) for a in lie.to_xyz_rotvec(jnp.asarray(fit.frames)))
+    frames = {
+        name: {
+            "nominal": _pose(np.asarray(arm.frames)[j], nxyz[j], nrv[j]),
+            "calibrated": _pose(fit.frames[j], cxyz[j], crv[j]),
+            "error_twist": {
+                c: _float(v) for c, v in zip(TWIST_COMPONENTS, fit.errors[j], strict=True)
+            },
+        }
+        for j, name in enumerate(arm.frame_names)
+    }
+    # An effect parameter is identified when no unidentifiable direction of the joint problem
+    # moves it (theta_std is NaN along those directions).
+    params = {}
+    for k, name in enumerate(names):
+        v, sd = float(fit.theta[k]), float(fit.theta_std[k])
+        ok = math.isfinite(sd)
+        params[name] = {
+            "value": v,
+            "unit": units[k],
+            "start": float(fit.theta_start[k]),
+            "std": sd if ok else None,
+            "ci95": [v - 1.96 * sd, v + 1.96 * sd] if ok else None,
+            "identifiable": ok,
+        }
+    unidentified = [nm for nm, p in params.items() if not p["identifiable"]]
+    refined = fit.calibrated_arm(arm)
+    steps, dps, dRs = fit.step_norm, fit.delta_p, fit.delta_R
+    k = fit.iterations
+    ids = list(meas.pose_ids)
+    stored = [*plausibility, *ident.warnings, *([cond.warning] if cond.warning else [])]
+    if unidentified:
+        stored.append(
+            "effect parameters not identifiable from these poses (kept at the model's values "
+            "along the unidentifiable directions): " + ", ".join(unidentified)
+        )
+    if flagged.any():
+        stored.append(
+            f"{int(flagged.sum())} pose(s) with a standardised residual above "
+            f"{OUTLIER_THRESHOLD:g}: " + ", ".join(ids[i] for i in np.flatnonzero(flagged))
+        )
+    inputs: dict[str, Any] = {"model": model_label, "data": data_label}
+    if sha is not None:
+        inputs["data_sha256"] = sha
+    result: dict[str, Any] = {
+        "format": RESULT_FORMAT,
+        "format_version": RESULT_FORMAT_VERSION,
+        "cdra_jax_version": package_version(),
+        "inputs": inputs,
+        "model": arm.name,
+        "n_poses": meas.m,
+        "solver": "lm",
+        "converged": fit.converged,
+        "result": "successful" if fit.converged else "max_iterations_reached",
+        "message": ""
+        if fit.converged
+        else "the calibration did not converge within max_iterations; raise it",
+        "noise": {
+            "position_mm": float(fit.noise.position_mm),
+            "rotation_rad": float(fit.noise.rotation_rad),
+            "source": fit.noise_source,
+        },
+        "initial": {"delta_p_mm": _float(dps[0]), "delta_R_rad": _float(dRs[0])},
+        "iterations": [
+            {
+                "iteration": i,
+                "step_norm": _float(steps[i - 1]),
+                "delta_p_mm": _float(dps[i]),
+                "delta_R_rad": _float(dRs[i]),
+            }
+            for i in range(1, k + 1)
+        ],
+        "final": {
+            "delta_p_mm": _float(dps[k]),
+            "delta_R_rad": _float(dRs[k]),
+            "cost": _float(fit.cost),
+            "rank": fit.rank,
+            "n_params": fit.n_params,
+            "singular_values": [_float(v) for v in fit.singular_values],
+        },
+        "frames": frames,
+        "effects": effects_to_list(refined.effects),
+        "effect_parameters": params,
+        "identifiability": ident.to_dict(),
+        "residuals": [
+            {
+                "pose": ids[i],
+                "nominal_position_mm": _float(p0[i]),
+                "nominal_rotation_rad": _float(r0[i]),
+                "calibrated_position_mm": _float(p1[i]),
+                "calibrated_rotation_rad": _float(r1[i]),
+                "z": _float(z[i]),
+                "weight": 1.0,
+                "outlier": bool(flagged[i]),
+            }
+            for i in range(meas.m)
+        ],
+        "outliers": {
+            "threshold": OUTLIER_THRESHOLD,
+            "scale": {
+                "position_mm": float(fit.noise.position_mm),
+                "rotation_rad": float(fit.noise.rotation_rad),
+                "source": "noise model" if fit.noise_source == "given" else "noise estimate",
+            },
+            "poses": [ids[i] for i in np.flatnonzero(flagged)],
+        },
+        "robust": None,
+        "conditioning": cond.to_dict(),
+        "warnings": stored,
+    }
+    gauge = {"definition": EFFECTS_GAUGE_TEXT, "reference": "nominal", "residual_to_nominal": None}
+    shown = _finish(result, gauge, plausibility, [], ident, cond)
+    return CalibrationRun(
+        arm=arm,
+        measurements=meas,
+        solution=fit,
+        result=_finite_json(result),
+        identifiability_summary=ident.summary(),
+        warnings=tuple(shown),
+        model_label=model_label,
+        data_label=data_label,
+    )
+
+
+def _float(x: Any) -> float | None:
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def _finite_json(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by ``None`` (JSON has no NaN or inf)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite_json(v) for v in obj]
+    return obj
+
+
+def _pose(T: np.ndarray, xyz: np.ndarray, rotvec: np.ndarray) -> dict[str, Any]:
+    return {
+        "xyz": [float(v) for v in xyz],
+        "rotvec": [float(v) for v in rotvec],
+        "matrix": np.asarray(T, dtype=float).tolist(),
+    }
+
+
+def _effect_lines(r: dict) -> list[str]:
+    """The refined effects of a result with ``effect_parameters``."""
+    lines = ["effects refined with the frames (start -> refined, 95 % interval):"]
+    for name, p in r["effect_parameters"].items():
+        ci = p.get("ci95")
+        interval = f" ({ci[0]:.4g} to {ci[1]:.4g})" if ci else " (not identifiable)"
+        lines.append(f"  {name} [{p['unit']}]: {p['start']:.6g} -> {p['value']:.6g}{interval}")
+    return lines
 
 
 def _finish(result, gauge, plausibility, degenerate, ident, cond) -> list[str]:
@@ -643,6 +920,11 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
                 r["noise"]["source"],
             )
         )
+    elif r.get("effect_parameters") is not None:
+        text = (
+            "lm (Levenberg-Marquardt on the frames and the model's [[effects]] jointly, "
+            "weighted by the noise scales)"
+        )
     elif rob is None:
         text = _SOLVER_TEXT[r["solver"]]
         if r["solver"] == "lm" and r["noise"] is not None:
@@ -674,7 +956,12 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
         lines += _auto_lines(r)
     elif r["noise"] is not None:
         n = r["noise"]
-        lines.append(f"noise model: {n['position_mm']:g} mm, {n['rotation_rad']:g} rad")
+        what = (
+            "noise scales (estimated from the residual)"
+            if n.get("source") == "estimated"
+            else ("noise model")
+        )
+        lines.append(f"{what}: {n['position_mm']:.3g} mm, {n['rotation_rad']:.3g} rad")
     lines.append(f"  {'iter':>4}  {'step norm':>11}  {'dp [mm]':>11}  {'dR [rad]':>11}")
     init = r["initial"]
     lines.append(
@@ -701,6 +988,8 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
     lines += frame_table(
         names, rows, "identified frame errors dt = log(T^c T^-1) (Eqs. 15-18; v mm, w rad):"
     )
+    if r.get("effect_parameters"):
+        lines += _effect_lines(r)
     lines.append(ident)
     if r["solver"] == "auto":
         units = out.get("units") or []

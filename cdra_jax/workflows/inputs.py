@@ -17,6 +17,7 @@ from pathlib import Path
 from ..arm import Arm
 from ..calibration import NoiseModel
 from ..io import Measurements, default_arm, load_measurements, load_model
+from ..physics import model_effects
 
 DEFAULT_MODEL_LABEL = "<cdra_jax>/data/cdra.toml"
 """Label of the embedded default model (the paper's 7-DOF CDRA) in reports and results."""
@@ -57,12 +58,20 @@ Data = Measurements | str | os.PathLike
 
 def resolve_arm(model: Model, label: str | None = None) -> tuple[Arm, str]:
     """``(arm, label)`` for a model argument; ``label`` overrides the derived one (the file
-    name, ``"embedded CDRA"`` for ``None``, the arm's name for an :class:`Arm`)."""
+    name, ``"embedded CDRA"`` for ``None``, the arm's name for an :class:`Arm`).
+
+    The model's ``[[effects]]`` are checked against the physics vocabulary here
+    (:func:`cdra_jax.physics.model_effects`: effect, variant, location, parameter names and
+    units), so that every command rejects a wrong entry with a message naming the file."""
     if isinstance(model, Arm):
-        return model, label or model.name
-    if model is None:
+        arm, label = model, label or model.name
+    elif model is None:
         return default_arm(), label or DEFAULT_MODEL_LABEL
-    return load_model(model), label or str(model)
+    else:
+        arm, label = load_model(model), label or str(model)
+    if arm.effects:
+        model_effects(arm, label)
+    return arm, label
 
 
 def resolve_measurements(

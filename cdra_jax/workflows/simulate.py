@@ -5,6 +5,12 @@ has cables; step 1), applies preset errors to the fixed frames, ``T_actual = exp
 (Eqs. 11-14; step 2), and measures the tool poses of the erroneous arm with optional Gaussian
 noise (step 3). The returned :class:`SimulationRun` holds the measurements (a measurement file
 with the preset errors as ``#`` comments) and the truth (the preset errors and actual frames).
+
+A model with ``[[effects]]`` is simulated with them (:func:`cdra_jax.physics.model_tool_pose`
+at the actual frames): the measurement file then also carries the auxiliary columns that the
+effects need (``time_s``: one pose every :data:`DT_S` seconds; ``approach.<module>``: +1 or -1
+at random; ``payload_kg``: uniform in 0 to :data:`PAYLOAD_MAX_KG`), and the truth records the
+effects.
 """
 
 from __future__ import annotations
@@ -32,10 +38,12 @@ from ..io import (
 )
 from ..io.files import json_text
 from ..io.frame_errors import frame_errors_to_dict
+from ..io.model import effects_to_list
 from ..io.results import package_version
 from ..modules.cable_data import simulate_cable_lengths
+from ..physics import corrected_tool_pose, model_effects, model_features, needed_aux
 from ..plots import new_figure
-from ..simulation import measure, random_frame_errors, sample_poses
+from ..simulation import add_measurement_noise, random_frame_errors, sample_poses
 from .calibrate import frame_table
 from .inputs import Model, check_range, check_seed, resolve_arm
 
@@ -44,19 +52,50 @@ DEFAULT_D_V_MM = 1.0
 """Range of random translation errors per component (the paper's Section V)."""
 DEFAULT_D_W_RAD = 0.05
 """Range of random rotation errors per component (the paper's Section V)."""
+DT_S = 20.0
+"""Time between simulated poses (s), for the ``time_s`` column of a model with effects."""
+PAYLOAD_MAX_KG = 1.0
+"""Largest simulated payload (kg), for the ``payload_kg`` column of a model with effects."""
 
 
-def _simulation(key, arm, X, d_v, d_w, m: int, noise, random_errors: bool):
+def _effect_aux(arm: Arm, m: int, seed: int) -> dict[str, np.ndarray]:
+    """The auxiliary columns the model's effects need, simulated (see the module docstring)."""
+    if not arm.effects:
+        return {}
+    names = ("time_s", "payload_kg", *(f"approach.{n}" for n in arm.module_names))
+    rng = np.random.default_rng([seed, 13])
+    out = {}
+    for name in needed_aux(arm, names):
+        if name == "time_s":
+            out[name] = np.arange(m, dtype=float) * DT_S
+        elif name == "payload_kg":
+            out[name] = rng.uniform(0.0, PAYLOAD_MAX_KG, m)
+        else:
+            out[name] = np.where(rng.uniform(size=m) < 0.5, -1.0, 1.0)
+    return out
+
+
+def _tool_poses(actual: Arm, q, aux):
+    """Noise-free tool poses of the actual arm, with the model's effects."""
+    cands, theta = model_effects(actual)
+    if not cands:
+        return tool_pose(actual, q)
+    features = model_features(actual, q, aux, cands)
+    return corrected_tool_pose(actual, q, features, jax.numpy.asarray(theta, q.dtype))
+
+
+def _simulation(key, arm, X, d_v, d_w, m: int, noise, random_errors: bool, aux):
     """Section V steps 1-3 in one compiled call: the preset errors ``(K+1, 6)``, the module
-    states ``(m, dof)``, the measured tool poses ``(m, 4, 4)`` and the actual frames
-    ``(K+1, 4, 4)`` with their translations and rotation vectors."""
+    states ``(m, dof)``, the measured tool poses ``(m, 4, 4)`` (with the model's effects) and
+    the actual frames ``(K+1, 4, 4)`` with their translations and rotation vectors."""
     k_err, k_states, k_noise = jax.random.split(key, 3)
     if random_errors:
         X = random_frame_errors(k_err, arm, d_v, d_w).reshape(-1, 6)
     actual = apply_frame_errors(arm, X)
     q = sample_poses(k_states, arm, m)
     xyz, rotvec = lie.to_xyz_rotvec(actual.frames)
-    return X, q, measure(k_noise, actual, q, noise), actual.frames, xyz, rotvec
+    measured = add_measurement_noise(k_noise, _tool_poses(actual, q, aux), noise)
+    return X, q, measured, actual.frames, xyz, rotvec
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -197,6 +236,7 @@ def simulate(
     else:
         X = np.asarray(errors, dtype=float).reshape(len(arm.frame_names), 6)
         errors_text = errors_label = "given"
+    aux = _effect_aux(arm, poses, seed)
     out = cached_filter_jit(_simulation)(
         jax.random.PRNGKey(seed),
         arm,
@@ -206,6 +246,7 @@ def simulate(
         poses,
         noise,
         is_random,
+        aux,
     )
     X, q, measured, actual_frames, actual_xyz, actual_rotvec = (np.asarray(a) for a in out)
     if noise is None:
@@ -228,6 +269,14 @@ def simulate(
             for name, row in zip(arm.frame_names, X, strict=True)
         ),
     ]
+    if arm.effects:
+        comments.append(
+            "simulated with the model's effects: "
+            + "; ".join(
+                e.label + " " + ", ".join(f"{n} = {v!r} {u}" for n, v, u in e.parameters)
+                for e in arm.effects
+            )
+        )
     cable_lengths = None
     if cables:
         cable_lengths = {
@@ -277,7 +326,9 @@ def simulate(
                 xyz[j] = xyz[j] + rng.uniform(-marker_error_mm, marker_error_mm, 3)
             true_markers[mk.name] = xyz[j].tolist()
         # Noise-free tool poses in the device frame, then isotropic noise on every point.
-        clean = device @ np.asarray(tool_pose(arm.with_frames(actual_frames), q))
+        clean = device @ np.asarray(
+            cached_filter_jit(_tool_poses)(arm.with_frames(actual_frames), q, aux)
+        )
         pts = np.einsum("mij,pj->mpi", clean[:, :3, :3], xyz) + clean[:, None, :3, 3]
         if noise is not None:
             pts = pts + float(noise.position_mm) * rng.standard_normal(pts.shape)
@@ -301,6 +352,7 @@ def simulate(
         comments=comments,
         cable_lengths=cable_lengths,
         points=point_data,
+        aux=aux or None,
     )
     truth = {
         "format": "cdra_jax.frame_errors",
@@ -328,6 +380,8 @@ def simulate(
         },
         "frames": frame_errors_to_dict(arm, X),
     }
+    if arm.effects:
+        truth["effects"] = effects_to_list(arm.effects)
     if device_frame is not None:
         truth["device_frame"] = device.tolist()
     if true_markers:
@@ -335,6 +389,11 @@ def simulate(
     lines = (
         f"model: {arm.name} ({model_label}); {poses} poses, seed {seed}",
         f"measurement noise: {noise_text}",
+        *(
+            [f"effects of the model simulated: {', '.join(e.label for e in arm.effects)}"]
+            if arm.effects
+            else []
+        ),
         *frame_table(arm.frame_names, X, f"preset frame errors ({errors_text}; v mm, w rad):"),
     )
     return SimulationRun(

@@ -7,7 +7,10 @@ seen marker or tool-origin point), and the rotation error of full poses, the ang
 ``R_meas^T R_model`` (rad). Pooled (``mean``, ``rms``, ``max``, ``n``) over every measured
 position and every measured rotation; per row, the mean over the row's positions.
 With a calibration result the nominal model's errors are reported beside, so the gain of the
-calibration on held-out data reads off directly. The returned :class:`ValidationRun` is what
+calibration on held-out data reads off directly. A model with ``[[effects]]`` predicts with them
+(:func:`cdra_jax.physics.model_tool_pose`, from the module states and the auxiliary columns
+``time_s``, ``approach.<module>``, ``payload_kg`` of the measurements); a calibration result
+that refined them (``effects``) applies its values. The returned :class:`ValidationRun` is what
 ``cdra-jax validate`` prints and writes.
 """
 
@@ -21,10 +24,20 @@ from typing import Any, NamedTuple
 import numpy as np
 from matplotlib.figure import Figure
 
+from .. import lie
 from ..arm import Arm
-from ..calibration.observations import error_table, make_observations, marker_table, row_means
+from ..calibration.model import tool_points
+from ..calibration.observations import (
+    Observations,
+    error_table,
+    make_observations,
+    marker_table,
+    row_means,
+)
 from ..calibration.registration import initial_guess
 from ..io import Measurements, calibrated_arm_from_result, load_result
+from ..io.model import effects_from_list
+from ..physics import check_effect_data, model_effects, model_tool_pose
 from ..plots import validation_figure
 from .inputs import Data, Model, resolve_arm, resolve_measurements
 from .result import JsonResult
@@ -54,8 +67,39 @@ def prediction_errors(arm: Arm, meas: Measurements) -> PredictionErrors:
     """The errors of ``arm``'s predictions on every measured position and rotation of ``meas``."""
     obs = make_observations(arm, meas.q, meas.full_poses, meas.points)
     xyz, _ = marker_table(arm, meas.point_names)
-    pos, ang = error_table(arm.frames, xyz, obs)
+    if arm.effects:
+        check_effect_data(arm, meas.aux)
+        pos, ang = _effect_error_table(arm, meas, xyz, obs)
+    else:
+        pos, ang = error_table(arm.frames, xyz, obs)
     return PredictionErrors(pos, ang, ("pose", *meas.point_names))
+
+
+def _effect_error_table(
+    arm: Arm, meas: Measurements, xyz: np.ndarray, obs: Observations
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~cdra_jax.calibration.observations.error_table` of the model with its effects."""
+    tool = np.asarray(model_tool_pose(arm, meas.q, meas.aux), dtype=float)
+    full = np.asarray(obs.full_poses, dtype=float)
+    mask = np.asarray(obs.pose_mask)
+    dpos = np.linalg.norm(full[:, :3, 3] - tool[:, :3, 3], axis=-1)
+    ang = np.asarray(lie.rotation_angle(np.swapaxes(full[:, :3, :3], -1, -2) @ tool[:, :3, :3]))
+    dpos = np.where(mask, dpos, np.nan)
+    ang = np.where(mask, ang, np.nan)
+    pts = np.asarray(tool_points(tool, xyz), dtype=float)
+    e = np.linalg.norm(np.asarray(obs.points) - pts, axis=-1)
+    e = np.where(np.asarray(obs.seen), e, np.nan)
+    return np.concatenate([dpos[:, None], e], axis=1), ang
+
+
+def result_arm(result: Mapping[str, Any], nominal: Arm, source: str = "<result>") -> Arm:
+    """The calibrated model of a result: ``nominal`` with its calibrated frames and markers
+    (Eq. 19) and, when the calibration refined the model's effects, their refined values."""
+    arm = calibrated_arm_from_result(result, nominal)
+    if result.get("effects"):
+        arm = arm.with_effects(effects_from_list(result["effects"], source))
+        model_effects(arm, source)
+    return arm
 
 
 def _num(x: float) -> float | None:
@@ -146,6 +190,8 @@ class ValidationRun(JsonResult):
             "position_error_mm": pooled(self.errors.position_mm),
             "rotation_error_rad": pooled(self.errors.rotation_rad),
         }
+        if self.arm.effects:
+            out["effects"] = [e.label for e in self.arm.effects]
         if self.result_label is not None:
             out["inputs"]["result"] = self.result_label
         if ref is not None:
@@ -168,6 +214,10 @@ class ValidationRun(JsonResult):
             f"({self.measurements.m} poses)",
             f"  {'':<22}{'mean':>11}{'rms':>11}{'max':>11}",
         ]
+        if self.arm.effects:
+            lines.insert(
+                1, "predicted with the model's effects: " + ", ".join(d.get("effects", []))
+            )
 
         def row(label: str, stats: Mapping[str, Any], unit: str) -> str:
             vals = "".join(
@@ -239,7 +289,7 @@ def validate(
         else:
             result_label = str(result)
             result = load_result(result)
-        arm = calibrated_arm_from_result(result, nominal)
+        arm = result_arm(result, nominal, result_label)
     errors = prediction_errors(arm, meas)
     ref = None
     reference, reference_label = "nominal", None

@@ -1,0 +1,244 @@
+"""The model file's ``[[effects]]``: read and written exactly, checked against the vocabulary,
+simulated, predicted by validate, refined by calibrate, noted by export."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cdra_jax.arm import EffectRecord
+from cdra_jax.calibration import NoiseModel
+from cdra_jax.cli import main
+from cdra_jax.io import ModelFileError, dumps_model, load_model, loads_model, save_model
+from cdra_jax.io.urdf import not_held
+from cdra_jax.physics import effect_records, model_effects, model_tool_pose
+from cdra_jax.workflows import calibrate, simulate, validate
+
+PERIODIC = EffectRecord(
+    "periodic_error", "elbow", "k=1", (("q_sin1", 0.003, "rad"), ("q_cos1", -0.002, "rad"))
+)
+DRIFT = EffectRecord(
+    "thermal_drift",
+    "base",
+    "",
+    tuple(
+        (f"rate_{c}", v, "mm/s" if c[0] == "v" else "rad/s")
+        for c, v in zip(
+            ("vx", "vy", "vz", "wx", "wy", "wz"), (4e-4, -2e-4, 1e-4, 0.0, 1e-6, 0.0), strict=True
+        )
+    ),
+)
+NOISE = NoiseModel(0.01, 1e-4)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    from cdra_jax import default_arm
+
+    return default_arm().with_effects([PERIODIC, DRIFT])
+
+
+def _model_text(arm, effects_toml: str) -> str:
+    """The model file of ``arm`` without its effects, with ``effects_toml`` (top-level keys
+    first, tables at the end)."""
+    if effects_toml.startswith("[["):
+        return dumps_model(arm.with_effects(())) + "\n" + effects_toml
+    return effects_toml + dumps_model(arm.with_effects(()))
+
+
+def test_effects_round_trip_exactly(truth, tmp_path):
+    odd = PERIODIC.with_values([0.1 + 0.2, -1.2345678901234567e-3])
+    arm = truth.with_effects([odd, DRIFT])
+    for exact in (True, False):
+        back = loads_model(dumps_model(arm, exact=exact))
+        assert back.effects == arm.effects
+    path = save_model(arm, tmp_path / "m.toml")
+    assert load_model(path).effects == arm.effects
+    assert 'effect = "periodic_error"' in path.read_text()
+    # parameters in another order than the vocabulary's: theta follows the vocabulary
+    text = _model_text(
+        arm,
+        '[[effects]]\neffect = "periodic_error"\nlocation = "elbow"\nvariant = "k=1"\n'
+        '[effects.parameters]\nq_cos1 = { value = -0.002, unit = "rad" }\n'
+        'q_sin1 = { value = 0.003, unit = "rad" }\n',
+    )
+    cands, theta = model_effects(loads_model(text))
+    assert cands[0].label == "periodic_error@elbow"
+    np.testing.assert_array_equal(theta, [0.003, -0.002])
+    # a record built from a fitted candidate and values (what a refit writes)
+    assert effect_records(truth, cands, [0.003, -0.002]) == (PERIODIC,)
+
+
+_GOOD = '[[effects]]\neffect = "periodic_error"\nlocation = "elbow"\nvariant = "k=1"\n'
+
+
+@pytest.mark.parametrize(
+    ("effects", "expected"),
+    [
+        ("effects = 3\n", "effects: expected [[effects]] tables"),
+        ('[[effects]]\nlocation = "elbow"\n', "effects[0].effect: needs 'effect'"),
+        (_GOOD, "effects[0] (periodic_error@elbow).parameters: expected a table"),
+        (
+            _GOOD + "[effects.parameters]\nq_sin1 = 0.003\n",
+            "effects[0] (periodic_error@elbow).parameters.q_sin1: expected { value",
+        ),
+        (
+            _GOOD + '[effects.parameters]\nq_sin1 = { value = "a", unit = "rad" }\n',
+            "parameters.q_sin1.value: expected a finite number",
+        ),
+        (
+            _GOOD + "[effects.parameters]\nq_sin1 = { value = 1.0, unit = 3 }\n",
+            "parameters.q_sin1.unit: expected a string",
+        ),
+        (
+            _GOOD + 'colour = "red"\n[effects.parameters]\nq = { value = 1.0, unit = "rad" }\n',
+            "unknown keys ['colour']",
+        ),
+    ],
+)
+def test_effect_file_errors_name_file_entry_and_key(truth, tmp_path, effects, expected):
+    path = tmp_path / "bad.toml"
+    path.write_text(_model_text(truth, effects))
+    with pytest.raises(ModelFileError) as e:
+        load_model(path)
+    assert str(path) in str(e.value) and expected in str(e.value)
+
+
+def _entry(effect="periodic_error", location="elbow", variant="k=1", params=None):
+    params = params or {"q_sin1": (0.003, "rad"), "q_cos1": (-0.002, "rad")}
+    text = f'[[effects]]\neffect = "{effect}"\nlocation = "{location}"\n'
+    if variant:
+        text += f'variant = "{variant}"\n'
+    text += "[effects.parameters]\n"
+    text += "".join(f'{n} = {{ value = {v}, unit = "{u}" }}\n' for n, (v, u) in params.items())
+    return text
+
+
+@pytest.mark.parametrize(
+    ("entry", "expected"),
+    [
+        (_entry(effect="gear_wobble"), ["unknown effect 'gear_wobble'", "periodic_error"]),
+        (_entry(variant="k=9"), ["effects[0] (periodic_error@elbow).variant", "'k=1'"]),
+        (_entry(location="upper_arm"), [".location", "its locations: shoulder, elbow, wrist"]),
+        (
+            _entry(params={"q_sin1": (0.003, "rad"), "q_sin2": (0.0, "rad")}),
+            ["unknown parameter(s) ['q_sin2']", "missing parameter(s) ['q_cos1']", "q_cos1 [rad]"],
+        ),
+        (
+            _entry(params={"q_sin1": (0.003, "deg"), "q_cos1": (0.0, "rad")}),
+            ["parameters.q_sin1.unit: expected 'rad', got 'deg'"],
+        ),
+    ],
+)
+def test_effects_checked_against_the_vocabulary_by_every_command(truth, tmp_path, entry, expected):
+    path = tmp_path / "bad.toml"
+    path.write_text(_model_text(truth, entry))
+    load_model(path)  # the structure is fine; the vocabulary is checked by the commands
+    for run in (
+        lambda: validate(path, "unused.csv"),
+        lambda: simulate(path, 5),
+    ):
+        with pytest.raises(ValueError) as e:
+            run()
+        assert str(path) in str(e.value)
+        for text in expected:
+            assert text in str(e.value)
+
+
+@pytest.fixture(scope="module")
+def clean_run(truth):
+    """Measurements of the model itself (no frame errors) with its effects and noise."""
+    return simulate(truth, 30, seed=3, errors="zero", noise=NOISE)
+
+
+def test_simulate_writes_the_effects_and_their_columns(clean_run, tmp_path):
+    meas = clean_run.measurements
+    assert set(meas.aux) == {"time_s"}  # the drift needs time; the periodic error nothing
+    assert clean_run.truth["effects"][0]["effect"] == "periodic_error"
+    paths = clean_run.save(tmp_path / "d.csv", tmp_path / "t.json")
+    text = paths[-1].read_text()
+    header = next(line for line in text.splitlines() if not line.startswith("#"))
+    assert "time_s" in header.split(",")
+    assert "simulated with the model's effects: periodic_error@elbow (k=1)" in text
+    assert json.loads(paths[0].read_text())["effects"][1]["effect"] == "thermal_drift"
+
+
+def test_validate_with_the_effects_reaches_the_noise_floor(truth, clean_run, tmp_path):
+    model = save_model(truth, tmp_path / "m.toml")
+    data = clean_run.save(tmp_path / "d.csv")[-1]
+    v = validate(model, data, compare=truth.with_effects(()))
+    d = v.to_dict()
+    floor = NOISE.position_mm * np.sqrt(3)  # mean |3-D Gaussian| ~ 1.6 sigma
+    assert d["position_error_mm"]["mean"] < 1.3 * floor
+    assert d["compare"]["position_error_mm"]["mean"] > 10 * floor
+    assert d["effects"] == ["periodic_error@elbow (k=1)", "thermal_drift@base"]
+    assert "predicted with the model's effects" in v.report()
+    # the same through the command line
+    assert main(["validate", "--model", str(model), "--data", str(data)]) == 0
+
+
+def test_effects_need_their_columns(truth, clean_run):
+    meas = clean_run.measurements
+    bare = type(meas).from_arrays(truth, meas.q, meas.measured)
+    with pytest.raises(ValueError, match=r"thermal_drift@base: no time_s column"):
+        validate(truth, bare)
+
+
+@pytest.fixture(scope="module")
+def calibrated(truth):
+    """Noise-free data of the arm with random frame errors and its effects, calibrated from a
+    model whose effect values are zero."""
+    run = simulate(truth, 30, seed=5, d_w=0.01)
+    start = truth.with_effects([e.with_values([0.0] * len(e.parameters)) for e in truth.effects])
+    return run, calibrate(start, run.measurements)
+
+
+def test_calibrate_refines_the_effects_with_the_frames(truth, calibrated, tmp_path):
+    run, cal = calibrated
+    assert cal.converged and cal.trusted
+    got = cal.calibrated_arm.effects
+    for want, have in zip(truth.effects, got, strict=True):
+        np.testing.assert_allclose(have.values, want.values, rtol=1e-6, atol=1e-12)
+    r = cal.to_dict()
+    p = r["effect_parameters"]["periodic_error@elbow.q_sin1"]
+    assert p["unit"] == "rad" and p["start"] == 0.0 and p["identifiable"]
+    assert r["final"]["delta_p_mm"] < 1e-6
+    assert "effects refined with the frames" in cal.report()
+    # the calibrated model file predicts the data; so does the result applied to the model
+    model = cal.save_model(tmp_path / "cal.toml")
+    assert load_model(model).effects == got
+    v = validate(model, run.measurements)
+    assert v.to_dict()["position_error_mm"]["max"] < 1e-6
+    path = cal.save(tmp_path / "r.json")
+    v = validate(cal.arm, run.measurements, result=path)
+    assert v.to_dict()["position_error_mm"]["max"] < 1e-6
+    assert v.to_dict()["nominal"]["position_error_mm"]["mean"] > 0.1
+
+
+def test_calibrate_with_effects_needs_full_poses(truth):
+    pts = simulate(truth, 12, seed=1, points=True, errors="zero").measurements
+    with pytest.raises(ValueError, match=r"full measured tool poses"):
+        calibrate(truth, pts)
+    with pytest.raises(ValueError, match=r"robust losses"):
+        calibrate(truth, simulate(truth, 12, seed=1).measurements, loss="huber")
+
+
+def test_model_tool_pose_without_effects_is_the_chain(truth):
+    import jax
+
+    from cdra_jax.arm import tool_pose
+    from cdra_jax.simulation import sample_poses
+
+    arm = truth.with_effects(())
+    q = sample_poses(jax.random.PRNGKey(0), arm, 4)
+    np.testing.assert_array_equal(
+        np.asarray(model_tool_pose(arm, q)), np.asarray(tool_pose(arm, q))
+    )
+
+
+def test_export_notes_the_effects(truth):
+    notes = not_held(truth)
+    assert any("periodic_error@elbow (k=1)" in n and "q_sin1 = 0.003 rad" in n for n in notes)
+    assert any("thermal_drift@base" in n for n in notes)
