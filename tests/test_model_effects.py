@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from cdra_jax import lie
 from cdra_jax.arm import EffectRecord
 from cdra_jax.calibration import NoiseModel
 from cdra_jax.cli import main
@@ -31,6 +32,7 @@ DRIFT = EffectRecord(
     ),
 )
 NOISE = NoiseModel(0.01, 1e-4)
+DEVICE_ROTVEC = (0.3, -0.2, 2.0)
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +122,7 @@ def _entry(effect="periodic_error", location="elbow", variant="k=1", params=None
     ("entry", "expected"),
     [
         (_entry(effect="gear_wobble"), ["unknown effect 'gear_wobble'", "periodic_error"]),
-        (_entry(variant="k=9"), ["effects[0] (periodic_error@elbow).variant", "'k=1'"]),
+        (_entry(variant="k=one"), ["effects[0] (periodic_error@elbow).variant", "'k=1'"]),
         (_entry(location="upper_arm"), [".location", "its locations: shoulder, elbow, wrist"]),
         (
             _entry(params={"q_sin1": (0.003, "rad"), "q_sin2": (0.0, "rad")}),
@@ -188,9 +190,9 @@ def test_effects_need_their_columns(truth, clean_run):
 
 @pytest.fixture(scope="module")
 def calibrated(truth):
-    """Noise-free data of the arm with random frame errors and its effects, calibrated from a
-    model whose effect values are zero."""
-    run = simulate(truth, 30, seed=5, d_w=0.01)
+    """Noise-free data of the arm with random frame errors and its effects, in a measuring
+    device's frame far from the robot's, calibrated from a model whose effect values are zero."""
+    run = simulate(truth, 30, seed=5, d_w=0.01, device_frame=[1500.0, -300, 200, *DEVICE_ROTVEC])
     start = truth.with_effects([e.with_values([0.0] * len(e.parameters)) for e in truth.effects])
     return run, calibrate(start, run.measurements)
 
@@ -199,13 +201,17 @@ def test_calibrate_refines_the_effects_with_the_frames(truth, calibrated, tmp_pa
     run, cal = calibrated
     assert cal.converged and cal.trusted
     got = cal.calibrated_arm.effects
-    for want, have in zip(truth.effects, got, strict=True):
-        np.testing.assert_allclose(have.values, want.values, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(got[0].values, PERIODIC.values, rtol=1e-6)
+    # The drift of the mount is identified in the measuring device's frame: rotated by it.
+    R = np.asarray(lie.so3_exp(np.asarray(DEVICE_ROTVEC)))
+    want = np.concatenate([R @ DRIFT.values[:3], R @ DRIFT.values[3:]])
+    np.testing.assert_allclose(got[1].values, want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
     r = cal.to_dict()
     p = r["effect_parameters"]["periodic_error@elbow.q_sin1"]
     assert p["unit"] == "rad" and p["start"] == 0.0 and p["identifiable"]
     assert r["final"]["delta_p_mm"] < 1e-6
     assert "effects refined with the frames" in cal.report()
+    assert r["registration"]["registered"] and "base frame registered" in cal.report()
     # the calibrated model file predicts the data; so does the result applied to the model
     model = cal.save_model(tmp_path / "cal.toml")
     assert load_model(model).effects == got
@@ -242,3 +248,28 @@ def test_export_notes_the_effects(truth):
     notes = not_held(truth)
     assert any("periodic_error@elbow (k=1)" in n and "q_sin1 = 0.003 rad" in n for n in notes)
     assert any("thermal_drift@base" in n for n in notes)
+
+
+def test_sweep_refuses_and_plan_poses_notes_the_effects(truth):
+    from cdra_jax.workflows import plan_poses, sweep
+
+    with pytest.raises(ValueError, match=r"the sweep simulates and calibrates the fixed frames"):
+        sweep(truth, [0.01], [1e-4], [10], trials=2)
+    plan = plan_poses(truth, 6, pool=12)
+    assert "the model's effects (periodic_error@elbow (k=1), thermal_drift@base)" in plan.report()
+    assert any("record also the columns the effects need: time_s" in c for c in plan.comments())
+
+
+def test_variants_beyond_the_vocabulary_list(truth):
+    two = EffectRecord(
+        "periodic_error",
+        "elbow",
+        "k=1,2",
+        tuple((f"q_{f}{k}", 0.0, "rad") for k in (1, 2) for f in ("sin", "cos")),
+    )
+    cands, theta = model_effects(truth.with_effects([two]))
+    assert cands[0].effect.harmonics == (1, 2) and theta.shape == (4,)
+    # the same variant gives the same effect object (candidates compare by identity)
+    assert model_effects(truth.with_effects([two]))[0] == cands
+    with pytest.raises(ValueError, match=r"or any 'k=<k>\[,<k>...\]'"):
+        model_effects(truth.with_effects([EffectRecord("periodic_error", "elbow", "k=0")]))

@@ -18,6 +18,7 @@ one parameter vector, and predicts with them:
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Sequence
 
 import jax.numpy as jnp
@@ -27,8 +28,8 @@ from jax.typing import ArrayLike
 
 from ..arm import Arm, EffectRecord
 from ..compilation import filter_jit
-from .base import Aux, Candidate, Features, corrected_tool_pose
-from .effects import VOCABULARY
+from .base import Aux, Candidate, Effect, Features, corrected_tool_pose
+from .effects import VOCABULARY, DrumPeriodicError, PeriodicError, ThermalDrift
 
 
 def _where(i: int, rec: EffectRecord, source: str | None) -> str:
@@ -36,19 +37,64 @@ def _where(i: int, rec: EffectRecord, source: str | None) -> str:
     return f"{head}effects[{i}] ({rec.name}@{rec.location})"
 
 
+_VARIANT_FORMS = {
+    "periodic_error": "'k=<k>[,<k>...]' (harmonics of the joint angle) or "
+    "'drum r=<radius>mm k=<k>[,<k>...]' (of the winch drum angle)",
+    "thermal_drift": "'warm-up tau=<seconds>s'",
+}
+"""Variants beyond the vocabulary's own that a model file may name (other harmonics, drum
+radii, warm-up time constants), in the spelling of the effect's ``variant``."""
+
+_MADE: dict[tuple[str, str], Effect] = {}
+"""Effects made for such variants, one object per (name, variant): candidates compare by the
+identity of their effect, so the same variant must give the same object (one compilation)."""
+
+
+def _variant_effect(name: str, variant: str) -> Effect | None:
+    """The effect of a variant outside the vocabulary's list (see :data:`_VARIANT_FORMS`)."""
+    if (name, variant) in _MADE:
+        return _MADE[(name, variant)]
+    harmonics = r"k=(\d+(?:,\d+)*)"
+    number = r"([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)"
+    effect: Effect | None = None
+    try:
+        if name == "periodic_error":
+            if m := re.fullmatch(harmonics, variant):
+                effect = PeriodicError(tuple(int(k) for k in m.group(1).split(",")))
+            elif m := re.fullmatch(rf"drum r={number}mm {harmonics}", variant):
+                ks = tuple(int(k) for k in m.group(2).split(","))
+                effect = DrumPeriodicError(float(m.group(1)), ks)
+        elif name == "thermal_drift" and (m := re.fullmatch(rf"warm-up tau={number}s", variant)):
+            effect = ThermalDrift(float(m.group(1)))
+    except ValueError:  # k = 0, a zero radius or time constant
+        return None
+    if effect is None or effect.variant != variant:  # only the canonical spelling
+        return None
+    _MADE[(name, variant)] = effect
+    return effect
+
+
 def effect_candidate(record: EffectRecord, arm: Arm, *, where: str = "effect") -> Candidate:
-    """The vocabulary's candidate for one record (effect, variant and location checked)."""
+    """The vocabulary's candidate for one record (effect, variant and location checked).
+
+    A variant outside the vocabulary's list may be named in the forms of
+    :data:`_VARIANT_FORMS` (``periodic_error`` ``"k=1,2"``, ``"drum r=12mm k=1"``;
+    ``thermal_drift`` ``"warm-up tau=300s"``)."""
     named = [e for e in VOCABULARY if e.name == record.name]
     if not named:
         known = ", ".join(dict.fromkeys(e.name for e in VOCABULARY))
         raise ValueError(f"{where}: unknown effect {record.name!r}; the vocabulary has: {known}")
     if record.variant:
         chosen = [e for e in named if e.variant == record.variant]
+        made = None if chosen else _variant_effect(record.name, record.variant)
+        if made is not None:
+            chosen = [made]
         if not chosen:
             variants = ", ".join(repr(e.variant) for e in named if e.variant) or "none"
+            forms = _VARIANT_FORMS.get(record.name)
             raise ValueError(
                 f"{where}.variant: {record.name} has no variant {record.variant!r}; its "
-                f"variants: {variants}"
+                f"variants: {variants}" + (f"; or any {forms}" if forms else "")
             )
     else:
         chosen = named

@@ -188,6 +188,7 @@ def refine(
     aux: Aux,
     noise: NoiseModel | None = None,
     *,
+    errors0: np.ndarray | None = None,
     max_iterations: int = 50,
     rtol: float = 1e-12,
 ) -> EffectRefit:
@@ -200,6 +201,8 @@ def refine(
         noise: the measuring device's noise (stds), or ``None``: estimated from the residual
             (position from the position errors, rotation from the rotation errors) after a
             first solve with 0.1 mm and 1 mrad, then solved again.
+        errors0: start of the frame errors ``(6 (K+1),)`` (default zero: the model's frames),
+            e.g. the base frame registered to the measuring device's frame.
         max_iterations: Levenberg-Marquardt steps per solve.
         rtol: relative decrease of the cost below which a solve has converged.
     """
@@ -208,7 +211,8 @@ def refine(
     aux = {k: jnp.asarray(v, q.dtype) for k, v in aux.items()}
     cands, theta0 = model_effects(arm)
     n = arm.n_params
-    y = np.concatenate([np.zeros(n), theta0])
+    X0 = np.zeros(n) if errors0 is None else np.asarray(errors0, float).reshape(n)
+    y = np.concatenate([X0, theta0])
     rounds: list[NoiseModel | None] = (
         [noise] if noise is not None else [NoiseModel(0.1, 1e-3), None]
     )

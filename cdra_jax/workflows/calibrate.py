@@ -46,6 +46,7 @@ from ..calibration import (
     to_nominal_gauge,
 )
 from ..calibration.model import pose_errors, residual_twist, whitening
+from ..calibration.registration import initial_guess
 from ..calibration.robust import OUTLIER_THRESHOLD
 from ..compilation import cached_filter_jit
 from ..conditioning import conditioning, conditioning_from_jacobian
@@ -484,13 +485,19 @@ def _calibrate_effects(
             "and reject_outliers are not available with effects"
         )
     check_effect_data(arm, meas.aux, data_label)
-    plausibility = list(check_plausibility(arm, meas))
+    # Start: the base frame registered to the measuring device's frame where that lowers the
+    # position errors (data in a tracker's own frame), as the auto solver starts.
+    obs = make_observations(arm, meas.q, meas.measured, None)
+    start = initial_guess(np.asarray(arm.frames), np.zeros((0, 3)), obs, ())
+    placed = arm.with_frames(jnp.asarray(start.frames)) if start.registered else arm
+    plausibility = list(check_plausibility(placed, meas))
     fit = refine(
         arm,
         meas.q,
         meas.measured,
         meas.aux,
         noise,
+        errors0=np.asarray(error_twists(jnp.asarray(start.frames), arm.frames)).reshape(-1),
         max_iterations=50 if max_iterations is None else max_iterations,
     )
     n = arm.n_params
@@ -598,6 +605,12 @@ def _calibrate_effects(
             "singular_values": [_float(v) for v in fit.singular_values],
         },
         "frames": frames,
+        "registration": {
+            "registered": bool(start.registered),
+            "markers_placed": [],
+            "rms_before_mm": _float(start.rms_before_mm),
+            "rms_after_mm": _float(start.rms_after_mm),
+        },
         "effects": effects_to_list(refined.effects),
         "effect_parameters": params,
         "identifiability": ident.to_dict(),
@@ -962,6 +975,12 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
             else ("noise model")
         )
         lines.append(f"{what}: {n['position_mm']:.3g} mm, {n['rotation_rad']:.3g} rad")
+        reg = r.get("registration") or {}
+        if reg.get("registered"):
+            lines.append(
+                f"start: base frame registered to the measuring device's frame (position RMS "
+                f"{_fmt(reg['rms_before_mm'], '.4g')} -> {_fmt(reg['rms_after_mm'], '.4g')} mm)"
+            )
     lines.append(f"  {'iter':>4}  {'step norm':>11}  {'dp [mm]':>11}  {'dR [rad]':>11}")
     init = r["initial"]
     lines.append(

@@ -25,6 +25,7 @@ from matplotlib.figure import Figure
 from ..arm import Arm
 from ..calibration import NoiseModel
 from ..io.files import write_text_atomic
+from ..physics import needed_aux
 from ..plots import new_figure
 from ..pose_selection import (
     CRITERIA,
@@ -101,6 +102,7 @@ class PosePlan(JsonResult):
             f"dR {self.expected_dR_rad:.4g} rad",
             "measure the tool pose at each row and add measured.x/y/z and measured.rx/ry/rz "
             "columns",
+            *effects_note(self.arm),
         ]
 
     def to_csv_text(self) -> str:
@@ -151,6 +153,7 @@ class PosePlan(JsonResult):
                 ),
                 f"  {n} random poses (median of {len(self.random_dp_mm)} draws): dp "
                 f"{np.median(self.random_dp_mm):.4g} mm",
+                *effects_note(self.arm),
             ]
         )
 
@@ -164,6 +167,21 @@ class PosePlan(JsonResult):
         ax.set_ylabel("random pose sets")
         ax.legend(fontsize="small")
         return fig
+
+
+def effects_note(arm: Arm) -> list[str]:
+    """Lines on a model's ``[[effects]]``: the criterion is the frames'; the columns to record."""
+    if not arm.effects:
+        return []
+    aux = needed_aux(arm, ("time_s", "payload_kg", *(f"approach.{n}" for n in arm.module_names)))
+    lines = [
+        "the model's effects ("
+        + ", ".join(e.label for e in arm.effects)
+        + ") are not part of the criterion: the poses are chosen for the fixed frames"
+    ]
+    if aux:
+        lines.append(f"record also the columns the effects need: {', '.join(aux)}")
+    return lines
 
 
 def plan_poses(

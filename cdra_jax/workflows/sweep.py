@@ -125,6 +125,14 @@ def sweep(
     check_seed(seed)
     levels = parse_noise_levels(noise_pos, noise_rot)
     arm, model_label = resolve_arm(model, model_label)
+    if arm.effects:
+        raise ValueError(
+            f"model {model_label}: the sweep simulates and calibrates the fixed frames alone; "
+            "the model's [[effects]] ("
+            + ", ".join(e.label for e in arm.effects)
+            + ") are not part of it. Sweep the geometric model (the same file without "
+            "[[effects]]), or study the effects with simulate + calibrate"
+        )
     table = run_sweep(
         arm,
         levels,
