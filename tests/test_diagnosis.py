@@ -68,7 +68,7 @@ def test_heldout_statistic_has_its_stated_null_distribution():
     m, k = 12, 10
     D = rng.standard_normal((6 * m, k))
     D[:, -1] = D[:, 0] - D[:, 1]  # a structural null direction, as the CDRA has two
-    fold = stats.fold_of_poses(m, 4, 0)
+    fold = np.repeat(stats.fold_of_poses(m, 4, 0), 6)  # the fold of each entry
     UD = stats.orthonormal_basis(D)
     null = stats.heldout(np.zeros(6 * m), D, fold, with_null=True).weights
     assert null.sum() == pytest.approx(6 * m, rel=1e-9)  # E[Q] = N
@@ -126,16 +126,18 @@ def test_variance_components_estimate_position_and_rotation_noise_separately():
     s = np.tile([sp] * 3 + [sr] * 3, m)
     D = rng.standard_normal((6 * m, 22)) * np.tile([1.0] * 3 + [1e-3] * 3, m)[:, None]
     U = stats.orthonormal_basis(D / s[:, None])
+    groups = np.tile([0, 0, 0, 1, 1, 1], m)
     est = []
     for _ in range(200):
         w = rng.standard_normal(6 * m)
         e = s * (w - U @ (U.T @ w))  # the residual of the fit at the true weights
-        est.append(stats.variance_components(e, D, (1e-12, 1e-15)))
+        est.append(stats.variance_components(e, D, groups, np.array([1e-12, 1e-15])))
     v = np.mean(np.square(est), axis=0)
     assert v[0] == pytest.approx(sp**2, rel=0.06)
     assert v[1] == pytest.approx(sr**2, rel=0.06)
     # exact data: the rounding floor, not zero
-    assert stats.variance_components(np.zeros(6 * m), D, (1e-10, 1e-13)) == (1e-10, 1e-13)
+    floors = np.array([1e-10, 1e-13])
+    assert stats.variance_components(np.zeros(6 * m), D, groups, floors).tolist() == [1e-10, 1e-13]
 
 
 # ----------------------------------------------------------------------------- diagnosis
@@ -339,3 +341,95 @@ def test_svd_and_cholesky_survive_what_lapack_refuses():
         stats.orthonormal_basis(np.array([[1.0, np.nan], [0.0, 1.0]]))
     S = np.eye(3) + 1e-17 * np.ones((3, 3))
     assert np.all(np.isfinite(stats._cholesky(S)))
+
+
+# ----------------------------------------------------------------------------- points
+
+
+MARKERS = (("m1", (40.0, 0.0, 10.0)), ("m2", (0.0, 35.0, 10.0)), ("m3", (-30.0, -25.0, 20.0)))
+
+
+def _point_recordings(effect=None, values=(), *, seed: int = 11, device=True):
+    """The shared poses measured as 3 markers on the tool (0.05 mm per coordinate, about 10 %
+    of the markers occluded), in a device frame 400 mm and 30 deg away from the model's base."""
+    from cdra_jax.arm import Marker
+
+    b = base()
+    arm = b.arm.with_markers([Marker(n, xyz) for n, xyz in MARKERS])
+    theta = np.zeros(b.F.n_params)
+    if effect is not None:
+        theta[b.cols[effect]] = values
+    T = np.asarray(corrected_tool_pose(b.actual, b.q, b.F, jnp.asarray(theta)))
+    if device:
+        c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+        to_device = np.array([[c, -s, 0, 400.0], [s, c, 0, -150.0], [0, 0, 1, 80.0], [0, 0, 0, 1]])
+        T = to_device @ T
+    rng = np.random.default_rng(seed)
+    points = {}
+    for name, xyz in MARKERS:
+        p = T[:, :3, :3] @ np.asarray(xyz) + T[:, :3, 3]
+        p = p + 0.05 * rng.standard_normal(p.shape)
+        p[rng.random(p.shape[0]) < 0.1] = np.nan
+        points[name] = p
+    aux = {k: np.asarray(v) for k, v in b.aux.items()}
+    meas = Measurements.from_arrays(arm, np.asarray(b.q), None, aux=aux, points=points)
+    return arm, meas
+
+
+def test_point_data_clean_give_none_and_an_injected_effect_is_found_where_it_is():
+    """Markers only (no orientation), occlusions, a device frame far from the base, the noise
+    estimated: the geometric fit registers the device frame; a periodic transmission error at
+    the elbow is found there and refitted to the noise floor; clean data give none."""
+    arm, clean = _point_recordings()
+    d = diagnose(arm, clean, None)
+    out = _check_contract(d)
+    assert (d.effect, d.mismatch) == ("none", False), d.report
+    assert list(d.noise["points_mm"]) == ["m1", "m2", "m3"]
+    assert all(v == pytest.approx(0.05, rel=0.25) for v in d.noise["points_mm"].values())
+    assert d.noise["position_mm"] is None and out["heldout_before"]["delta_R_rad"] is None
+    assert "marker coordinates" not in d.report and "(noise estimated: points 0.0" in d.report
+
+    c = find("periodic_error", "elbow", "k=2")
+    arm, meas = _point_recordings(c, [0.002, 0.001])
+    d = diagnose(arm, meas, None)
+    _check_contract(d)
+    assert d.mismatch and (d.effect, d.located_in) == ("periodic_error", "elbow"), d.report
+    # the noise is estimated from the geometric fit's residual, which the misfit inflates: the
+    # floor of the truth (0.05 mm per coordinate) is what the refit must reach
+    true_floor = 0.05 * np.sqrt(3)
+    assert d.heldout_before.delta_p_mm > 2.5 * true_floor, d.heldout_before
+    assert d.heldout_after.delta_p_mm < 1.2 * true_floor, d.heldout_after
+    for spec, v in zip(c.parameters(arm), (0.002, 0.001), strict=True):
+        est = d.parameters[spec.name]
+        assert abs(est.value - v) <= 1.7 * 0.5 * (est.high - est.low), (spec.name, est)
+    per_row = d.residuals["after"]
+    assert per_row["position_mm"].shape == (meas.m,)
+    assert np.all(np.isnan(per_row["rotation_rad"]))
+
+
+def test_point_data_through_the_cli(tmp_path, capsys):
+    from cdra_jax.io import save_model
+
+    c = find("periodic_error", "elbow", "k=2")
+    arm, meas = _point_recordings(c, [0.002, 0.001], device=False)
+    model = save_model(arm, tmp_path / "model.toml")
+    data = save_measurements(meas, tmp_path / "points.csv")
+    out = tmp_path / "diag.json"
+    argv = ["diagnose", "--model", str(model), "--data", str(data), "--out", str(out)]
+    assert main(argv + ["--plots", str(tmp_path / "plots")]) == 0
+    res = json.loads(out.read_text())
+    assert (res["effect"], res["located_in"]) == ("periodic_error", "elbow")
+    assert res["noise"]["source"] == "estimated" and res["noise"]["points_mm"]["m2"] > 0
+    assert "points" in capsys.readouterr().out
+
+
+def test_gravity_turns_with_the_registered_base_frame():
+    from cdra_jax import lie
+    from cdra_jax.diagnosis.core import _gravity_in_fit_frame
+
+    arm = base().arm
+    turn = np.asarray(lie.from_xyz_rotvec(np.array([400.0, 0, 0]), np.array([np.pi / 2, 0, 0])))
+    frames = np.asarray(arm.frames).copy()
+    frames[0] = turn @ frames[0]
+    moved = _gravity_in_fit_frame(arm.with_frames(frames), arm)
+    np.testing.assert_allclose(np.asarray(moved.gravity), [0.0, 9.81, 0.0], atol=1e-12)

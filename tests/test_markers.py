@@ -363,11 +363,19 @@ def test_plan_poses_for_a_model_measured_by_markers(arm):
     assert plan.to_dict()["expected_dR_rad"] is None
 
 
-def test_diagnose_says_it_needs_full_poses(arm, truth):
-    q, _, pts = _points(truth, 12, key=9)
+def test_diagnose_calibrates_rough_markers_before_it_looks_for_missing_physics(arm, truth):
+    """Markers with ``calibrate = true`` placed 20 mm off, the device frame far away, clean
+    noisy points: the geometric fit registers the frame and places the markers (their
+    coordinates are parameters of the fit), and nothing is missing."""
+    q, _, pts = _points(truth, 24, key=9, noise=0.05)
     meas = Measurements.from_arrays(arm, q, points={"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2]})
-    with pytest.raises(ValueError, match="diagnose needs full tool poses"):
-        workflows.diagnose(arm, meas)
+    run = workflows.diagnose(arm, meas)
+    d = run.diagnosis
+    n_cal = sum(mk.calibrate for mk in arm.markers)
+    assert d.details["geometric_fit"]["n_params"] == arm.n_params + 3 * n_cal
+    assert f"{3 * n_cal} marker coordinates" in d.report
+    assert (d.effect, d.mismatch) == ("none", False), d.report
+    assert d.heldout_before.delta_p_mm < 0.2
 
 
 def test_validate_register_places_the_reference_in_the_device_frame(arm, truth):

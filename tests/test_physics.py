@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from _physics_data import base, find
 
-from cdra_jax import lie, tool_pose
+from cdra_jax import NoiseModel, lie, tool_pose
 from cdra_jax.arm import Arm
 from cdra_jax.calibration import stacked_system
-from cdra_jax.diagnosis.model import residual_and_jacobian
+from cdra_jax.calibration.observations import make_observations
+from cdra_jax.diagnosis.model import Extended, residual_and_jacobian
 from cdra_jax.modules.cables import cable_forward_kinematics, cable_lengths
 from cdra_jax.modules.statics import gravity_torques, holding_tensions
 from cdra_jax.physics import (
@@ -71,13 +72,17 @@ def test_features_shapes_and_jacobians_finite():
     # Jacobian): finite, non-zero for every column, and the frame-error block is Eq. 8's D
     # (minus: the residual is measured minus model).
     T = tool_pose(b.actual, b.q)
-    G = jnp.broadcast_to(jnp.eye(6), (b.q.shape[0], 6, 6))
+    m = b.q.shape[0]
+    obs = make_observations(b.actual, b.q, np.asarray(T), None)
+    one = jnp.ones(m)
+    problem = Extended(b.actual, b.q, obs, one, one, jnp.ones((m, 0)), jnp.zeros((0, 3)), b.F)
     y0 = jnp.zeros(b.arm.n_params + b.F.n_params)
-    r, J = residual_and_jacobian(y0, b.actual, b.q, T, G, b.F)
+    r, J = residual_and_jacobian(y0, problem)
     assert float(jnp.abs(r).max()) < 1e-9
     assert bool(jnp.all(jnp.isfinite(J)))
     assert bool(jnp.all(jnp.abs(J).max(axis=0) > 0))
-    _, D = stacked_system(b.actual, b.q, T)
+    # the frame columns are the whitened Eq. 8 Jacobian (1 mm, 1 rad), with the sign of e = -D X
+    _, D = stacked_system(b.actual, b.q, T, NoiseModel(1.0, 1.0))
     np.testing.assert_allclose(J[:, : b.arm.n_params], -D, atol=1e-9)
 
 

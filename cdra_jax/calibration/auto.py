@@ -253,8 +253,8 @@ def calibrate_auto(
     n = 6 * frames0.shape[0] + 3 * len(calibrated)
 
     given = noise is not None
-    sp = float(noise.position_mm) if given else INITIAL_SIGMA_MM
-    sr = float(noise.rotation_rad) if given else INITIAL_SIGMA_RAD
+    sp = float(noise.position_mm) if noise is not None else INITIAL_SIGMA_MM
+    sr = float(noise.rotation_rad) if noise is not None else INITIAL_SIGMA_RAD
     s_pts = np.full(P, sp)
     w_pos = np.ones(m)
     w_rot = np.ones(m)

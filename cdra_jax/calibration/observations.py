@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, module_poses
@@ -141,7 +142,7 @@ def marker_table(arm: Arm, point_names: Sequence[str]) -> tuple[np.ndarray, tupl
 
 @eqx.filter_jit
 def apply_parameters(
-    theta: Array, frames0: Array, xyz0: Array, calibrated: tuple[int, ...]
+    theta: ArrayLike, frames0: ArrayLike, xyz0: ArrayLike, calibrated: tuple[int, ...]
 ) -> tuple[Array, Array]:
     """``(frames (K+1, 4, 4), xyz (P, 3))`` at the parameters ``theta = [X; dx]``."""
     theta, frames0, xyz0 = jnp.asarray(theta), jnp.asarray(frames0), jnp.asarray(xyz0)
@@ -155,9 +156,9 @@ def apply_parameters(
 
 
 @eqx.filter_jit
-def predictions(frames: Array, xyz: Array, obs: Observations) -> tuple[Array, Array]:
+def predictions(frames: ArrayLike, xyz: ArrayLike, obs: Observations) -> tuple[Array, Array]:
     """Model tool poses ``(m, 4, 4)`` and model points ``(m, P, 3)`` (world frame, mm)."""
-    tool, _ = chain(frames, obs.poses)
+    tool, _ = chain(jnp.asarray(frames), obs.poses)
     return tool, tool_points(tool, xyz)
 
 
@@ -180,12 +181,45 @@ def whitened_residual(
     """
     frames, xyz = apply_parameters(theta, frames0, xyz0, calibrated)
     tool, _ = chain(frames, obs.poses)
+    return stacked_residual(tool, xyz, obs, sigma_pos, sigma_rot, sigma_pt)
+
+
+def stacked_residual(
+    tool: Array, xyz: Array, obs: Observations, sigma_pos: Array, sigma_rot: Array, sigma_pt: Array
+) -> Array:
+    """The stacked whitened residual ``(6 m + 3 m P,)`` of model tool poses ``tool (m, 4, 4)``
+    (world frame, mm) and tool-frame points ``xyz (P, 3)`` (mm) against ``obs`` (standard
+    deviations as in :func:`whitened_residual`; layout: module docstring, :func:`row_layout`)."""
     G = whitening(obs.full_poses, NoiseModel(sigma_pos, sigma_rot))
     Y = jnp.einsum("mij,mj->mi", G, residual_twist(obs.full_poses, tool))
     Y = jnp.where(obs.pose_mask[:, None], Y, 0.0)
     e = point_residual(obs.points, tool, xyz) / sigma_pt[..., None]
     e = jnp.where(obs.seen[..., None], e, 0.0)
     return jnp.concatenate([Y.reshape(-1), e.reshape(-1)])
+
+
+ROW_POSITION, ROW_ROTATION, ROW_POINT = 0, 1, 2
+"""Kinds of the rows of the stacked residual (:func:`row_layout`)."""
+
+
+def row_layout(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(measured, row, kind, point)``, each ``(6 m + 3 m P,)``, for the stacked residual:
+    whether the entry is measured (else it is an exact zero), the measurement row it belongs
+    to, its kind (:data:`ROW_POSITION` / :data:`ROW_ROTATION` of a full pose, or
+    :data:`ROW_POINT`) and the point's index (``-1`` for full-pose entries)."""
+    m, P = obs.m, obs.n_points
+    pose_mask = np.asarray(obs.pose_mask)
+    seen = np.asarray(obs.seen)
+    measured = np.concatenate([np.repeat(pose_mask, 6), np.repeat(seen.reshape(-1), 3)])
+    row = np.concatenate([np.repeat(np.arange(m), 6), np.repeat(np.arange(m), 3 * P)])
+    kind = np.concatenate(
+        [
+            np.tile([ROW_POSITION] * 3 + [ROW_ROTATION] * 3, m),
+            np.full(3 * m * P, ROW_POINT),
+        ]
+    )
+    point = np.concatenate([np.full(6 * m, -1), np.tile(np.repeat(np.arange(P), 3), m)])
+    return measured, row, kind, point
 
 
 residual = eqx.filter_jit(whitened_residual)

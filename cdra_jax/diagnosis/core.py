@@ -23,23 +23,37 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
 from ..arm import Arm
-from ..calibration import NoiseModel, whitening
+from ..calibration import NoiseModel
+from ..calibration.auto import calibrate_auto
 from ..calibration.model import stacked_system
+from ..calibration.observations import (
+    ROW_POINT,
+    ROW_POSITION,
+    ROW_ROTATION,
+    Observations,
+    make_observations,
+    marker_table,
+    row_layout,
+)
 from ..calibration.validation import MIN_POSES
 from ..io.measurements import Measurements
-from ..physics import PROBES, VOCABULARY, Candidate, Effect, candidates
+from ..physics import PROBES, VOCABULARY, Candidate, Effect, Features, candidates
 from . import stats
-from .model import all_features, geometric_fit, joint_refit, residual_and_jacobian
+from .model import Extended, all_features, geometric_fit, joint_refit, residual_and_jacobian
 from .report import render_report
-from .result import CandidateRow, Diagnosis, HeldOutErrors, ParameterEstimate
+from .result import CandidateRow, Diagnosis, HeldOutErrors, ParameterEstimate, _num
 
 EXPLAINED_MIN = 0.9
 """A significant candidate whose refit leaves a significant held-out misfit is still reported
@@ -74,9 +88,67 @@ ABSORBED_EXACTLY = (
 
 _NOISE_RATIO_DEFAULT = (1.0, 1e-3)  # mm, rad: the first fit's weighting when no noise is given
 
+_POSITION, _ROTATION, _POINT = ROW_POSITION, ROW_ROTATION, ROW_POINT
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """The measured entries of the stacked residual (:func:`.observations.row_layout`).
+
+    Attributes:
+        take: ``(N,)`` their indices in the stacked vector.
+        row: ``(N,)`` the measurement row (pose) of each.
+        kind: ``(N,)`` full-pose position, full-pose rotation or point.
+        entry: ``(N,)`` the entry's number within its row (the same entry of two repeated
+            rows has the same number).
+        unit: ``(N,)`` the 3-vector (a full pose's position or rotation, a point) it belongs to.
+        point: ``(N,)`` the point's index (``-1`` for full-pose entries).
+        scale: ``(N,)`` its standard deviation (mm or rad): whitened times scale is physical.
+    """
+
+    take: np.ndarray
+    row: np.ndarray
+    kind: np.ndarray
+    entry: np.ndarray
+    unit: np.ndarray
+    point: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.take.size)
+
+
+def _rows(problem: Extended) -> _Rows:
+    obs = problem.obs
+    measured, row, kind, point = row_layout(obs)
+    n_pose = 6 * obs.m
+    idx = np.arange(measured.size)
+    entry = np.where(idx < n_pose, idx % 6, 6 + 3 * point + (idx - n_pose) % 3)
+    sp = np.broadcast_to(np.asarray(problem.sigma_pos, float), (obs.m,))
+    sr = np.broadcast_to(np.asarray(problem.sigma_rot, float), (obs.m,))
+    spt = np.broadcast_to(np.asarray(problem.sigma_pt, float), (obs.m, obs.n_points))
+    scale = np.concatenate(
+        [np.stack([sp] * 3 + [sr] * 3, axis=1).reshape(-1), np.repeat(spt.reshape(-1), 3)]
+    )
+    take = np.flatnonzero(measured)
+    return _Rows(take, row[take], kind[take], entry[take], idx[take] // 3, point[take], scale[take])
+
+
+def _sigmas(obs: Observations, position_mm, rotation_rad, points_mm, dtype):
+    """Per-row standard deviations ``(m,), (m,), (m, P)``: one value for the full poses'
+    position and one for their rotation, one per point (``points_mm`` scalar or ``(P,)``)."""
+    m, P = obs.m, obs.n_points
+    return (
+        jnp.full((m,), position_mm, dtype),
+        jnp.full((m,), rotation_rad, dtype),
+        jnp.broadcast_to(jnp.asarray(points_mm, dtype), (m, P)),
+    )
+
 
 def _estimate_noise(arm: Arm, q, T, floor: tuple[float, float]) -> NoiseModel:
-    """Position and rotation noise estimated separately from a geometric fit (no noise given).
+    """Position and rotation noise estimated separately from a geometric fit of full poses
+    (no noise given).
 
     A first fit weighted 1 mm : 1 mrad; then :func:`stats.variance_components` on its residual
     in mm and rad (the tool-point position error and the rotation of each pose), which
@@ -85,17 +157,61 @@ def _estimate_noise(arm: Arm, q, T, floor: tuple[float, float]) -> NoiseModel:
     sol = geometric_fit(arm, q, T, NoiseModel(*_NOISE_RATIO_DEFAULT))
     # whitening by (1 mm, 1 rad): rows in mm (tool point) and rad, the Jacobian alike
     e, D = stacked_system(arm.with_frames(sol.frames), q, T, NoiseModel(1.0, 1.0))
-    sp, sr = stats.variance_components(np.asarray(e, float), np.asarray(D, float), floor)
+    groups = np.tile([0, 0, 0, 1, 1, 1], int(np.shape(q)[0]))
+    sp, sr = stats.variance_components(
+        np.asarray(e, float), np.asarray(D, float), groups, np.asarray(floor)
+    )
     # arrays, not Python floats: the compiled fit treats floats as static (one compile each)
     return NoiseModel(jnp.asarray(sp, q.dtype), jnp.asarray(sr, q.dtype))
+
+
+def _point_noise(problem: Extended, floor: tuple[float, float]) -> tuple[float, float, np.ndarray]:
+    """``(position mm, rotation rad, points (P,) mm)`` estimated by variance components on the
+    geometric fit's residual in physical units (every standard deviation 1): one group for the
+    full poses' positions, one for their rotations, one per point (NaN for a group without
+    measurements)."""
+    dtype = problem.q.dtype
+    P = problem.obs.n_points
+    one = _sigmas(problem.obs, 1.0, 1.0, 1.0, dtype)
+    unit = eqx.tree_at(lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt), problem, one)
+    e, D = residual_and_jacobian(jnp.zeros(unit.n_geometric + unit.features.n_params, dtype), unit)
+    rows = _rows(unit)
+    e = np.asarray(e, float)[rows.take]
+    D = np.asarray(D, float)[rows.take, : unit.n_geometric]
+    groups = np.where(rows.kind == _POINT, 2 + rows.point, rows.kind)
+    floors = np.array([floor[0], floor[1]] + [floor[0]] * P)
+    s = stats.variance_components(e, D, groups, floors)
+    present = np.array([np.any(groups == g) for g in range(2 + P)])
+    s = np.where(present, s, np.nan)
+    return float(s[0]), float(s[1]), s[2:]
+
+
+def _gravity_in_fit_frame(fit_arm: Arm, nominal: Arm) -> Arm:
+    """``fit_arm`` with the nominal model's gravity turned with its base frame: the fit may
+    place the world frame in a measuring device's frame (a registration), while the nominal
+    model's gravity is given in the robot's world frame, fixed to the nominal base."""
+    R_fit = jnp.asarray(fit_arm.frames)[0, :3, :3]
+    R_nom = jnp.asarray(nominal.frames, R_fit.dtype)[0, :3, :3]
+    g = R_fit @ R_nom.T @ jnp.asarray(nominal.gravity, R_fit.dtype)
+    return eqx.tree_at(lambda a: a.gravity, fit_arm, g)
+
+
+def _measured_positions(meas: Measurements) -> np.ndarray:
+    """``(n, 3)`` every measured position (full-pose origins and seen points, mm)."""
+    parts = []
+    if meas.full_poses is not None:
+        parts.append(np.asarray(meas.full_poses)[:, :3, 3])
+    if meas.points is not None:
+        parts.append(np.asarray(meas.points).reshape(-1, 3))
+    pts = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return pts[np.all(np.isfinite(pts), axis=1)]
 
 
 def _as_arrays(arm: Arm, meas: Measurements):
     dtype = jnp.asarray(arm.frames).dtype
     q = jnp.asarray(meas.q, dtype)
-    T = jnp.asarray(meas.measured, dtype)
     aux = {k: jnp.asarray(v, dtype) for k, v in meas.aux.items()}
-    return q, T, aux
+    return q, aux
 
 
 def _check(arm: Arm, meas: Measurements, folds: int, alpha: float) -> None:
@@ -104,16 +220,10 @@ def _check(arm: Arm, meas: Measurements, folds: int, alpha: float) -> None:
             "measurements must be a cdra_jax.io.Measurements (from load_measurements or "
             f"Measurements.from_arrays), got {type(meas).__name__}"
         )
-    if meas.measured is None:
+    if not meas.has_measurements:
         raise ValueError(
-            f"{meas.source}: "
-            + (
-                "these data measure points (markers or tool positions without orientation); "
-                "diagnose needs full tool poses in every row (calibrate, validate and "
-                "plan-poses work with points)"
-                if meas.has_measurements
-                else "no measured tool poses (measured.x ... columns); a diagnosis needs them"
-            )
+            f"{meas.source}: no measured tool poses or points (measured.x ... columns); a "
+            "diagnosis needs them"
         )
     if tuple(meas.state_names) != tuple(arm.state_names):
         raise ValueError(
@@ -158,31 +268,138 @@ def _linear_fit(r: np.ndarray, A: np.ndarray, scale_var: float) -> tuple[np.ndar
     return y, sd
 
 
-def _physical(ho: stats.HeldOut, noise: NoiseModel) -> np.ndarray:
-    """Held-out residuals in mm and rad, ``(m, 6)``: measured minus predicted (first order)."""
-    scale = np.array([float(noise.position_mm)] * 3 + [float(noise.rotation_rad)] * 3)
-    return ho.residual * scale
+def _per_row(values: np.ndarray, rows: _Rows, m: int) -> dict[str, np.ndarray]:
+    """Per measurement row: ``position_mm`` (m,) the RMS norm of the row's position errors (the
+    full pose's tool point and each seen point) and ``rotation_rad`` (m,) the norm of its
+    rotation error (NaN where the row has none), from physical entry values ``(N,)``."""
+    out = {}
+    for name, kinds in (("position_mm", (_POSITION, _POINT)), ("rotation_rad", (_ROTATION,))):
+        sel = np.isin(rows.kind, kinds)
+        units, inverse = np.unique(rows.unit[sel], return_inverse=True)
+        sq = np.bincount(inverse, weights=values[sel] ** 2, minlength=units.size)
+        owner = rows.row[sel][np.unique(inverse, return_index=True)[1]]
+        total = np.bincount(owner, weights=sq, minlength=m)
+        count = np.bincount(owner, minlength=m)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[name] = np.where(count > 0, np.sqrt(total / np.maximum(count, 1)), np.nan)
+    return out
 
 
-def _suggested_noise(r: np.ndarray, df_resid: int, noise: NoiseModel) -> dict[str, float]:
+def _rms(values: np.ndarray, rows: _Rows, kinds: tuple[int, ...]) -> float:
+    """RMS over the 3-vectors of ``kinds`` of their norm (NaN where there is none)."""
+    sel = np.isin(rows.kind, kinds)
+    n_units = np.unique(rows.unit[sel]).size
+    return float(np.sqrt(np.sum(values[sel] ** 2) / n_units)) if n_units else math.nan
+
+
+def _suggested_noise(
+    r: np.ndarray, df_resid: int, rows: _Rows, point_names: Sequence[str]
+) -> dict[str, Any]:
     """The noise (std) the geometric fit's residual would imply if nothing were missing: the
-    stated one scaled by the RMS of the whitened position and rotation residuals, corrected
-    for the degrees of freedom the fit uses."""
-    R = r.reshape(-1, 6)
+    used one scaled by the RMS of the whitened residual of each kind (each point), corrected
+    for the degrees of freedom the fit uses (``None`` for a kind not measured)."""
     dof = df_resid / r.size
-    kp = float(np.sqrt(np.mean(R[:, :3] ** 2) / dof))
-    kr = float(np.sqrt(np.mean(R[:, 3:] ** 2) / dof))
-    return {
-        "position_mm": kp * float(noise.position_mm),
-        "rotation_rad": kr * float(noise.rotation_rad),
+
+    def implied(sel):
+        if not sel.any():
+            return None
+        return float(np.sqrt(np.mean(r[sel] ** 2) / dof)) * float(np.median(rows.scale[sel]))
+
+    out: dict[str, Any] = {
+        "position_mm": implied(rows.kind == _POSITION),
+        "rotation_rad": implied(rows.kind == _ROTATION),
     }
+    if point_names:
+        out["points_mm"] = {n: implied(rows.point == j) for j, n in enumerate(point_names)}
+    return out
 
 
-def _errors(ho: stats.HeldOut, noise: NoiseModel, p_value: float | None) -> HeldOutErrors:
-    sp, sr = float(noise.position_mm), float(noise.rotation_rad)
-    dp = sp * np.sqrt(np.mean(np.sum(ho.residual[:, :3] ** 2, axis=1)))
-    dR = sr * np.sqrt(np.mean(np.sum(ho.residual[:, 3:] ** 2, axis=1)))
-    return HeldOutErrors(float(dp), float(dR), float(ho.statistic), p_value)
+def _errors(ho: stats.HeldOut, rows: _Rows, p_value: float | None) -> HeldOutErrors:
+    phys = ho.residual * rows.scale
+    return HeldOutErrors(
+        _rms(phys, rows, (_POSITION, _POINT)),
+        _rms(phys, rows, (_ROTATION,)),
+        float(ho.statistic),
+        p_value,
+    )
+
+
+def _noise_floor(ho: stats.HeldOut, rows: _Rows) -> tuple[float, float]:
+    """RMS held-out prediction error expected from the noise alone (position mm, rotation rad)."""
+    sd = np.sqrt(ho.variance) * rows.scale
+    return _rms(sd, rows, (_POSITION, _POINT)), _rms(sd, rows, (_ROTATION,))
+
+
+def _geometric_start(arm: Arm, meas: Measurements, q, aux, noise: NoiseModel | None, floor):
+    """The geometric fit the diagnosis starts from, as an :class:`Extended` problem (without
+    features yet) and the fit's summary.
+
+    Full poses in every row: the weighted Gauss-Newton of the paper from the nominal frames
+    (noise estimated first where none is given, :func:`_estimate_noise`). Points (markers, the
+    tool origin) or rows without a full pose: the ``auto`` solver's plain least squares
+    (:func:`cdra_jax.calibration.calibrate_auto`: the device frame registered, markers with
+    ``calibrate = true`` placed), then the noise of each kind estimated on its residual."""
+    dtype = q.dtype
+    xyz_nom, calibrated = marker_table(arm, meas.point_names)
+    obs = make_observations(arm, meas.q, meas.full_poses, meas.points)
+    none = Features.zeros(arm, meas.m, 0, dtype)
+    if meas.measured is not None:
+        T = jnp.asarray(meas.measured, dtype)
+        wn = noise if noise is not None else _estimate_noise(arm, q, T, floor)
+        sol = geometric_fit(arm, q, T, wn)
+        sp, sr, spt = _sigmas(obs, wn.position_mm, wn.rotation_rad, wn.position_mm, dtype)
+        problem = Extended(
+            arm=arm.with_frames(sol.frames),
+            q=q,
+            obs=obs,
+            sigma_pos=sp,
+            sigma_rot=sr,
+            sigma_pt=spt,
+            xyz=jnp.asarray(xyz_nom, dtype),
+            features=none,
+        )
+        fit = {
+            "solver": "paper (weighted)",
+            "converged": bool(sol.converged),
+            "iterations": int(sol.iterations),
+        }
+        return problem, fit
+    auto = calibrate_auto(
+        arm, meas.q, meas.full_poses, meas.points, meas.point_names, noise=noise, loss="ls"
+    )
+    s = (
+        (float(noise.position_mm), float(noise.rotation_rad), float(noise.position_mm))
+        if noise is not None
+        else (1.0, 1.0, 1.0)
+    )
+    sp, sr, spt = _sigmas(obs, *s, dtype)
+    problem = Extended(
+        arm=arm.with_frames(jnp.asarray(auto.frames, dtype)),
+        q=q,
+        obs=obs,
+        sigma_pos=sp,
+        sigma_rot=sr,
+        sigma_pt=spt,
+        xyz=jnp.asarray(auto.xyz, dtype),
+        features=none,
+        calibrated=auto.calibrated_points,
+    )
+    if noise is None:
+        sp, sr, spt = _point_noise(problem, floor)
+        est = (
+            sp if math.isfinite(sp) else 1.0,
+            sr if math.isfinite(sr) else 1.0,
+            np.where(np.isfinite(spt), spt, 1.0),
+        )
+        problem = eqx.tree_at(
+            lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt), problem, _sigmas(obs, *est, dtype)
+        )
+    fit = {
+        "solver": "auto (least squares)",
+        "converged": bool(auto.converged),
+        "iterations": int(auto.iterations),
+    }
+    return problem, fit
 
 
 def diagnose(
@@ -218,18 +435,15 @@ def diagnose(
     """
     _check(arm, measurements, folds, alpha)
     meas = measurements
-    q, T, aux = _as_arrays(arm, meas)
+    q, aux = _as_arrays(arm, meas)
     m = meas.m
-    N = 6 * m
     given = noise is not None
     # below this a residual is rounding (exact data), not measurement noise
-    floor_phys = stats.rounding_floor(np.asarray(meas.measured)[:, :3, 3])
-    weight_noise = noise if noise is not None else _estimate_noise(arm, q, T, floor_phys)
-    G = whitening(T, weight_noise)
+    floor_phys = stats.rounding_floor(_measured_positions(meas))
 
     # 1. geometric fit
-    sol = geometric_fit(arm, q, T, weight_noise)
-    fit_arm = arm.with_frames(sol.frames)
+    base, fit_info = _geometric_start(arm, meas, q, aux, noise, floor_phys)
+    fit_arm = base.arm
 
     # 2. features of every evaluable candidate and probe, one Jacobian for all
     table = candidates(arm, aux.keys(), effects)
@@ -241,26 +455,23 @@ def diagnose(
     sizes = [len(c.parameters(arm)) for c in everything]
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     cols = {c: slice(int(offsets[i]), int(offsets[i + 1])) for i, c in enumerate(everything)}
-    F_all = all_features(everything, fit_arm, q, aux)
-    n_geo = arm.n_params
+    F_all = all_features(everything, _gravity_in_fit_frame(fit_arm, arm), q, aux)
+    problem = eqx.tree_at(lambda p: p.features, base, F_all)
+    layout = _rows(problem)
+    n_geo = problem.n_geometric
     y0 = jnp.zeros(n_geo + F_all.n_params, q.dtype)
-    assert G is not None  # weight_noise is a NoiseModel here, so the residual is whitened
-    r_j, J_j = residual_and_jacobian(y0, fit_arm, q, T, G, F_all)
-    r = np.asarray(r_j, float)
-    Jfull = np.asarray(J_j, float)
+    r_j, J_j = residual_and_jacobian(y0, problem)
+    r = np.asarray(r_j, float)[layout.take]
+    Jfull = np.asarray(J_j, float)[layout.take]
+    N = r.size
     D, J = Jfull[:, :n_geo], Jfull[:, n_geo:]
     UD = stats.orthonormal_basis(D)
     rank = UD.shape[1]
     df_resid = N - rank
-    # The estimated noise already carries its scale (each group's residual sum of squares over
-    # its degrees of freedom), so the whitened residual has unit variance either way.
-    used_noise = NoiseModel(float(weight_noise.position_mm), float(weight_noise.rotation_rad))
-    # mean square of the rounding floor per whitened entry (position rows, then rotation rows)
-    floor2 = 0.5 * (
-        (floor_phys[0] / float(used_noise.position_mm)) ** 2
-        + (floor_phys[1] / float(used_noise.rotation_rad)) ** 2
-    )
-    fold = stats.fold_of_poses(m, folds, seed)
+    # mean square of the rounding floor per whitened entry
+    floor_of_kind = np.where(layout.kind == _ROTATION, floor_phys[1], floor_phys[0])
+    floor2 = float(np.mean((floor_of_kind / layout.scale) ** 2))
+    fold = stats.fold_of_poses(m, folds, seed)[layout.row]
 
     # 3. detection
     ho0 = stats.heldout(r, D, fold, with_null=given)
@@ -268,7 +479,7 @@ def diagnose(
     chi2_in = float(r @ r)
     p_in = float(scipy.stats.chi2.sf(chi2_in, df_resid)) if given else None
     groups = stats.repeat_groups(np.asarray(meas.q), REPEAT_TOL)
-    lof = stats.lack_of_fit(r, groups, df_resid, floor2)
+    lof = stats.lack_of_fit(r, groups, df_resid, floor2, row=layout.row, entry=layout.entry)
 
     # 4. candidate table: one row per (effect, location); its variants are alternatives
     evals: dict[Candidate, dict] = {}
@@ -344,7 +555,7 @@ def diagnose(
     effect_name = "none"
     located_in: str | None = None
     parameters: dict[str, ParameterEstimate] = {}
-    before = _errors(ho0, used_noise, p_heldout)
+    before = _errors(ho0, layout, p_heldout)
     after = before
     refit_info: dict = {}
     best: Candidate | None = None
@@ -357,7 +568,7 @@ def diagnose(
         same = [c for c in live if (c.name, c.location) == (best.name, best.location)]
         forms, gains = _refinements(best, same, cols, r, D, J, fold)
         best = forms[0]
-        args = (fit_arm, arm, q, T, G, F_all, r, D, J, fold, given)
+        args = (problem, layout, arm, r, D, J, fold, given)
         refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(forms, cols, *args)
         # further forms, judged on the model linearised at the refit (a large effect moves
         # the solution far from the geometric fit, where the first linearisation was made)
@@ -377,7 +588,7 @@ def diagnose(
             {"variant": c.variant or None, "heldout_gain": g, "n_params": len(c.parameters(arm))}
             for c, g in zip(forms, gains, strict=True)
         ]
-        after = _errors(ho1, used_noise, p_after)
+        after = _errors(ho1, layout, p_after)
         explained = min(
             _explained(ho0.statistic - N, ho1.statistic - N),
             _explained(
@@ -414,10 +625,18 @@ def diagnose(
         for row in rows
         if row.skipped is None and row.df == 0
     ]
-    floor = (
-        float(used_noise.position_mm) * float(np.sqrt(np.mean(np.sum(ho0.variance[:, :3], 1)))),
-        float(used_noise.rotation_rad) * float(np.sqrt(np.mean(np.sum(ho0.variance[:, 3:], 1)))),
-    )
+    floor = _noise_floor(ho0, layout)
+    used: dict[str, Any] = {
+        "position_mm": float(np.asarray(problem.sigma_pos)[0])
+        if meas.full_poses is not None
+        else None,
+        "rotation_rad": float(np.asarray(problem.sigma_rot)[0])
+        if meas.full_poses is not None
+        else None,
+    }
+    if meas.points is not None:
+        sigma_pt = np.asarray(problem.sigma_pt)[0]
+        used["points_mm"] = {n: float(v) for n, v in zip(meas.point_names, sigma_pt, strict=True)}
     diag = Diagnosis(
         mismatch=bool(mismatch),
         p_value=float(p_value),
@@ -427,16 +646,13 @@ def diagnose(
         candidates=rows,
         heldout_before=before,
         heldout_after=after,
-        noise={
-            "position_mm": float(used_noise.position_mm),
-            "rotation_rad": float(used_noise.rotation_rad),
-            "source": "given" if given else "estimated",
-        },
+        noise={**used, "source": "given" if given else "estimated"},
         not_identifiable_from_poses=not_ident,
         tests={
             "heldout_chi2": {
                 "statistic": ho0.statistic,
                 "expected": float(N),
+                "entries": int(N),
                 "p_value": p_heldout,
             },
             "in_sample_chi2": {"statistic": chi2_in, "df": int(df_resid), "p_value": p_in},
@@ -459,15 +675,10 @@ def diagnose(
             "seed": seed,
             "n_poses": m,
             "n_frame_params": arm.n_params,
-            "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": floor[1]},
+            "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": _num(floor[1])},
             "rounding_floor": {"position_mm": floor_phys[0], "rotation_rad": floor_phys[1]},
-            "noise_suggested": _suggested_noise(r, df_resid, used_noise),
-            "geometric_fit": {
-                "converged": bool(sol.converged),
-                "iterations": int(sol.iterations),
-                "rank": int(rank),
-                "n_params": n_geo,
-            },
+            "noise_suggested": _suggested_noise(r, df_resid, layout, meas.point_names),
+            "geometric_fit": {**fit_info, "rank": int(rank), "n_params": n_geo},
             "refit": refit_info or None,
             "probes": probe_rows,
             "best_candidate": None if best is None else best.label,
@@ -476,8 +687,8 @@ def diagnose(
     )
     diag.residuals = {
         "pose_ids": list(meas.pose_ids),
-        "before": _physical(ho0, used_noise),
-        "after": _physical(ho1, used_noise) if ho1 is not None else _physical(ho0, used_noise),
+        "before": _per_row(ho0.residual * layout.scale, layout, m),
+        "after": _per_row((ho1 if ho1 is not None else ho0).residual * layout.scale, layout, m),
     }
     diag.report = render_report(diag, best)
     return diag
@@ -556,7 +767,7 @@ def _refinements(best, same, cols, r, D, J, fold):
     return forms, gains
 
 
-def _refit(forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, y_start=None):
+def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_start=None):
     """Joint LM refit of the frame errors and the parameters of ``forms`` (the selected
     candidate first, then the forms added to it), from ``y_start`` (all entries of ``y``) or
     from the linearised fit at the geometric solution. Returns ``(info, parameters, heldout,
@@ -572,10 +783,10 @@ def _refit(forms, cols, fit_arm, arm, q, T, G, F_all, r, D, J, fold, given, y_st
         y0[free] = y_lin
     else:
         y0 = np.array(y_start, float)
-    y_all, ok, steps = joint_refit(y0, free, fit_arm, q, T, G, F_all)
-    r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, q.dtype), fit_arm, q, T, G, F_all)
-    r1 = np.asarray(r1, float)
-    J1_all = np.asarray(J1_all, float)
+    y_all, ok, steps = joint_refit(y0, free, problem)
+    r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, problem.q.dtype), problem)
+    r1 = np.asarray(r1, float)[rows.take]
+    J1_all = np.asarray(J1_all, float)[rows.take]
     J1 = J1_all[:, free]
     U1 = stats.orthonormal_basis(J1)
     dof = r1.size - U1.shape[1]

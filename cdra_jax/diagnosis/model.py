@@ -1,23 +1,26 @@
 """The compiled pieces of a diagnosis: whitened residual of the extended model, its Jacobian,
 the geometric fit and the joint (geometric + physical) Levenberg-Marquardt refit.
 
-The parameters of the extended model are ``y = (X, theta)``: the error twists ``X (6 (K+1),)``
-left-multiplied on the fixed frames of a reference model (Eqs. 11-14) and the physical
-parameters ``theta (p,)`` of the feature columns (:class:`cdra_jax.physics.Features`). The
-residual is the whitened Eq. 7 twist of every pose, stacked ``(6 m,)``.
+The parameters of the extended model are ``y = (X, dx, theta)``: the error twists
+``X (6 (K+1),)`` left-multiplied on the fixed frames of a reference model (Eqs. 11-14), the
+corrections ``dx (3 c,)`` of the ``c`` calibrated marker positions (mm, tool frame) and the
+physical parameters ``theta (p,)`` of the feature columns (:class:`cdra_jax.physics.Features`).
+The residual is the stacked whitened residual of :mod:`cdra_jax.calibration.observations`: the
+Eq. 7 twist of every full pose, then every measured point (``6 m + 3 m P`` entries, exact zeros
+where nothing was measured).
 """
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .. import lie
 from ..arm import Arm
 from ..calibration import calibrate_paper
-from ..calibration.model import residual_twist
+from ..calibration.observations import Observations, apply_parameters, stacked_residual
 from ..compilation import filter_jit
 from ..physics import Aux, Candidate, Features, corrected_tool_pose
 
@@ -28,26 +31,55 @@ def all_features(cands: tuple[Candidate, ...], arm: Arm, q: Array, aux: Aux) -> 
     return Features.concatenate([c.features(arm, q, aux) for c in cands])
 
 
-def whitened_residual(
-    y: Array, arm: Arm, q: Array, measured: Array, G: Array, features: Features
-) -> Array:
-    """``(6 m,)`` whitened residual ``G log(T_meas T(y)^-1)^v`` of the extended model."""
-    n = arm.n_params
-    X = y[:n].reshape(-1, 6)
-    theta = y[n:]
-    moved = arm.with_frames(lie.se3_exp(X) @ jnp.asarray(arm.frames, y.dtype))
-    tool = corrected_tool_pose(moved, q, features, theta)
-    Y = residual_twist(measured, tool)
-    return jnp.einsum("mij,mj->mi", G, Y).reshape(-1)
+class Extended(eqx.Module):
+    """Everything the extended model's residual needs besides ``y`` (one diagnosis).
+
+    Attributes:
+        arm: the reference model (its frames are where ``X = 0``).
+        q: ``(m, dof)`` module states.
+        obs: the measured full poses and points (:class:`~cdra_jax.calibration.observations.
+            Observations`).
+        sigma_pos, sigma_rot: ``(m,)`` standard deviations of the full poses' position (mm)
+            and rotation (rad), ``inf`` where a row has none.
+        sigma_pt: ``(m, P)`` those of the points (mm), ``inf`` where not seen.
+        xyz: ``(P, 3)`` reference tool-frame positions of the points (mm; ``0``: the origin).
+        calibrated: indices of the points whose position is a parameter (static).
+        features: the candidates' feature columns.
+    """
+
+    arm: Arm
+    q: Array
+    obs: Observations
+    sigma_pos: Array
+    sigma_rot: Array
+    sigma_pt: Array
+    xyz: Array
+    features: Features
+    calibrated: tuple[int, ...] = eqx.field(static=True, default=())
+
+    @property
+    def n_geometric(self) -> int:
+        """Entries of ``(X, dx)``: ``6 (K+1) + 3 c``."""
+        return self.arm.n_params + 3 * len(self.calibrated)
+
+
+def whitened_residual(y: Array, problem: Extended) -> Array:
+    """``(6 m + 3 m P,)`` whitened residual of the extended model at ``y`` (module docstring)."""
+    n = problem.n_geometric
+    frames, xyz = apply_parameters(
+        y[:n], jnp.asarray(problem.arm.frames, y.dtype), problem.xyz, problem.calibrated
+    )
+    tool = corrected_tool_pose(problem.arm.with_frames(frames), problem.q, problem.features, y[n:])
+    return stacked_residual(
+        tool, xyz, problem.obs, problem.sigma_pos, problem.sigma_rot, problem.sigma_pt
+    )
 
 
 @filter_jit
-def residual_and_jacobian(
-    y: Array, arm: Arm, q: Array, measured: Array, G: Array, features: Features
-) -> tuple[Array, Array]:
-    """Residual ``(6 m,)`` and its Jacobian ``(6 m, len(y))`` (``jax.jacfwd``), compiled once
+def residual_and_jacobian(y: Array, problem: Extended) -> tuple[Array, Array]:
+    """Residual ``(N,)`` and its Jacobian ``(N, len(y))`` (``jax.jacfwd``), compiled once
     per shape."""
-    fn = lambda yy: whitened_residual(yy, arm, q, measured, G, features)
+    fn = lambda yy: whitened_residual(yy, problem)
     return fn(y), jax.jacfwd(fn)(y)
 
 
@@ -60,11 +92,7 @@ def geometric_fit(arm: Arm, q: Array, measured: Array, noise):
 def joint_refit(
     y0: np.ndarray,
     free: np.ndarray,
-    arm: Arm,
-    q: Array,
-    measured: Array,
-    G: Array,
-    features: Features,
+    problem: Extended,
     *,
     max_steps: int = 50,
     rtol: float = 1e-10,
@@ -83,10 +111,10 @@ def joint_refit(
         ``(y, converged, steps)``.
     """
     y = np.array(y0, float)
-    dtype = jnp.asarray(arm.frames).dtype
+    dtype = jnp.asarray(problem.arm.frames).dtype
 
     def evaluate(yy):
-        r, J = residual_and_jacobian(jnp.asarray(yy, dtype), arm, q, measured, G, features)
+        r, J = residual_and_jacobian(jnp.asarray(yy, dtype), problem)
         return np.asarray(r, float), np.asarray(J, float)[:, free]
 
     r, J = evaluate(y)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -17,6 +18,32 @@ def _p(p: float | None) -> str:
     if p is None:
         return "-"
     return "< 1e-12" if p < 1e-12 else format(p, ".2g")
+
+
+def _finite(x: float | None) -> bool:
+    return x is not None and math.isfinite(x)
+
+
+def _errors_text(position_mm: float | None, rotation_rad: float | None) -> str:
+    """``"position 0.1 mm, rotation 0.002 rad"``; the rotation left out where none is measured."""
+    text = f"position {_g(position_mm)} mm"
+    return text + (f", rotation {_g(rotation_rad)} rad" if _finite(rotation_rad) else "")
+
+
+def _noise_text(noise: dict) -> str:
+    """The noise values used, one per measured kind (full-pose position and rotation, points)."""
+    parts = []
+    if _finite(noise.get("position_mm")):
+        parts.append(f"{noise['position_mm']:.3g} mm")
+    if _finite(noise.get("rotation_rad")):
+        parts.append(f"{noise['rotation_rad']:.3g} rad")
+    pts = [v for v in (noise.get("points_mm") or {}).values() if _finite(v)]
+    if pts:
+        lo, hi = min(pts), max(pts)
+        parts.append(
+            f"points {lo:.3g} mm" if f"{lo:.2g}" == f"{hi:.2g}" else f"points {lo:.3g}-{hi:.3g} mm"
+        )
+    return ", ".join(parts)
 
 
 def _skipped_text(candidates) -> list[str]:
@@ -46,14 +73,18 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
     b, a = d.heldout_before, d.heldout_after
     floor = det["noise_floor"]
     t = d.tests
+    fit = det.get("geometric_fit") or {}
+    n_frame = det.get("n_frame_params", 0)
+    n_marker = int(fit.get("n_params", n_frame)) - int(n_frame)
+    params = f"{n_frame} frame-error parameters" + (
+        f" and {n_marker} marker coordinates" if n_marker > 0 else ""
+    )
     lines = [
-        f"Geometric calibration ({det.get('n_frame_params', '')} frame-error parameters, "
-        f"weighted Gauss-Newton) of {det['n_poses']} "
-        f"poses, {det['folds']}-fold cross-validated: held-out position error "
-        f"{b.delta_p_mm:.3g} mm, rotation {b.delta_R_rad:.3g} rad; noise floor "
-        f"{floor['delta_p_mm']:.3g} mm, {floor['delta_R_rad']:.3g} rad "
-        f"(noise {d.noise['source']}: {d.noise['position_mm']:.3g} mm, "
-        f"{d.noise['rotation_rad']:.3g} rad).",
+        f"Geometric calibration ({params}, {fit.get('solver', 'weighted Gauss-Newton')}) of "
+        f"{det['n_poses']} poses, {det['folds']}-fold cross-validated: held-out "
+        f"{_errors_text(b.delta_p_mm, b.delta_R_rad)}; noise floor "
+        f"{_errors_text(floor['delta_p_mm'], floor['delta_R_rad'])} "
+        f"(noise {d.noise['source']}: {_noise_text(d.noise)}).",
     ]
     parts = []
     ho = t["heldout_chi2"]
@@ -113,7 +144,7 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 sug = det["noise_suggested"]
                 msg += (
                     ": the measuring device may be noisier than stated (the residual suggests "
-                    f"{sug['position_mm']:.3g} mm, {sug['rotation_rad']:.3g} rad)."
+                    f"{_noise_text(sug)})."
                 )
             else:
                 msg += (
@@ -136,10 +167,14 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 )
                 + "."
             )
+        rot = (
+            f", rotation {b.delta_R_rad:.3g} -> {a.delta_R_rad:.3g} rad"
+            if _finite(b.delta_R_rad)
+            else ""
+        )
         lines.append(
-            f"Held-out position error {b.delta_p_mm:.3g} -> {a.delta_p_mm:.3g} mm, rotation "
-            f"{b.delta_R_rad:.3g} -> {a.delta_R_rad:.3g} rad; noise floor "
-            f"{floor['delta_p_mm']:.3g} mm."
+            f"Held-out position error {b.delta_p_mm:.3g} -> {a.delta_p_mm:.3g} mm{rot}; noise "
+            f"floor {floor['delta_p_mm']:.3g} mm."
         )
         if a.p_value is not None and a.p_value < det["alpha"]:
             lines.append(

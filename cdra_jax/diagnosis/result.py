@@ -160,9 +160,10 @@ class Diagnosis:
     tests: dict[str, Any] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
     residuals: dict[str, Any] = field(default_factory=dict, repr=False)
-    """Held-out residuals per pose (not in the JSON): ``"before"`` / ``"after"`` ``(m, 6)``
-    arrays ``(position error (mm), rotation error (rad))``, measured minus predicted, world
-    frame, and ``"pose_ids"``."""
+    """Held-out errors per measurement row (not in the JSON): ``"before"`` / ``"after"`` map
+    ``"position_mm"`` ``(m,)`` (RMS norm of the row's position errors: the full pose's tool
+    point and each seen point) and ``"rotation_rad"`` ``(m,)`` (norm of the full pose's
+    rotation error, NaN in rows without one), measured minus predicted; and ``"pose_ids"``."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping with every key of the design's diagnosis contract."""

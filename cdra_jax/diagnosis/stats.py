@@ -1,9 +1,11 @@
 """Statistics of the diagnosis on the linearised, whitened calibration problem (numpy).
 
-Notation: ``r (N,)`` is the whitened residual (``N = 6 m``, unit variance per entry under the
-stated noise model) at a fit, ``A (N, k)`` the whitened Jacobian of the fitted parameters
-(the 6 (K+1) frame errors, 24 for the CDRA, plus a candidate's physical parameters). Rows come
-in blocks of 6 per pose; cross-validation folds split poses, never the 6 rows of one pose.
+Notation: ``r (N,)`` is the whitened residual (unit variance per entry under the stated noise
+model) at a fit: 6 entries per measured full pose and 3 per measured point, only the measured
+ones. ``A (N, k)`` is the whitened Jacobian of the fitted parameters (the 6 (K+1) frame errors,
+24 for the CDRA, calibrated marker positions, plus a candidate's physical parameters).
+Cross-validation folds split the measurement rows (poses), never the entries of one row: every
+function takes the fold of each entry, ``fold[row]``.
 
 Held-out test. For fold ``f`` the parameters are refitted on the other folds (minimum-norm
 least squares), ``x_-f = A_-f^+ r_-f``, and the held-out residual ``e_f = r_f - A_f x_-f`` has,
@@ -62,7 +64,9 @@ def _svd(A: np.ndarray, full_matrices: bool = True, compute_uv: bool = True):
             "data produce it (check the auxiliary columns and the model's masses)"
         )
     try:
-        return np.linalg.svd(A, full_matrices=full_matrices, compute_uv=compute_uv)
+        if not compute_uv:
+            return np.linalg.svd(A, compute_uv=False)
+        return np.linalg.svd(A, full_matrices=full_matrices)
     except np.linalg.LinAlgError:
         return scipy.linalg.svd(
             A, full_matrices=full_matrices, compute_uv=compute_uv, lapack_driver="gesvd"
@@ -108,8 +112,8 @@ class HeldOut:
     """Cross-validated prediction of a linear model (see the module docstring).
 
     Attributes:
-        residual: ``(m, 6)`` held-out whitened residual of each pose.
-        variance: ``(m, 6)`` its predictive variance (diagonal of ``S_f``).
+        residual: ``(N,)`` held-out whitened residual of each entry.
+        variance: ``(N,)`` its predictive variance (diagonal of ``S_f``).
         statistic: ``Q``.
         loglik: held-out Gaussian log-likelihood ``-(Q + sum log det S_f + N log 2 pi) / 2``.
         weights: ``lambda_k`` of the null distribution of ``Q`` (when requested), else None.
@@ -152,13 +156,13 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
     """K-fold held-out residuals and statistic of the linear model ``r ~ A x`` (unit noise).
 
     Args:
-        r: ``(6 m,)`` whitened residual.
-        A: ``(6 m, k)`` whitened Jacobian.
-        fold: ``(m,)`` fold of each pose (:func:`fold_of_poses`).
+        r: ``(N,)`` whitened residual.
+        A: ``(N, k)`` whitened Jacobian.
+        fold: ``(N,)`` fold of each entry (that of its pose, :func:`fold_of_poses`).
         with_null: also compute the weights of the null distribution of ``Q``.
     """
     N = r.shape[0]
-    rows = np.repeat(fold, 6)
+    rows = np.asarray(fold)
     An, _ = _normalise_columns(A)
     res = np.zeros(N)
     var = np.zeros(N)
@@ -166,7 +170,7 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
     logdet = 0.0
     W = np.zeros((N, N)) if with_null else None
     Wss = np.zeros((N, N)) if with_null else None
-    for f in np.unique(fold):
+    for f in np.unique(rows):
         te = rows == f
         tr = ~te
         P, _ = pinv(An[tr])
@@ -191,7 +195,7 @@ def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool =
         weights = _svd(W, compute_uv=False) ** 2
         ss_weights = _svd(Wss, compute_uv=False) ** 2
     loglik = -0.5 * (Q + logdet + N * np.log(2 * np.pi))
-    return HeldOut(res.reshape(-1, 6), var.reshape(-1, 6), Q, float(loglik), weights, ss_weights)
+    return HeldOut(res, var, Q, float(loglik), weights, ss_weights)
 
 
 def quadratic_form_sf(x: float, weights: np.ndarray) -> float:
@@ -366,13 +370,22 @@ class LackOfFit:
 
 
 def lack_of_fit(
-    r: np.ndarray, groups: list[np.ndarray], df_resid: int, floor2: float = 0.0
+    r: np.ndarray,
+    groups: list[np.ndarray],
+    df_resid: int,
+    floor2: float = 0.0,
+    *,
+    row: np.ndarray | None = None,
+    entry: np.ndarray | None = None,
 ) -> LackOfFit | None:
     """Lack-of-fit F test from repeated poses, or None (no repeats, or no degrees of freedom).
 
-    Pure error: scatter of the whitened residuals within each group of repeats (6 entries per
-    pose); lack of fit: the rest of the residual sum of squares. Needs no noise value (only
-    the ratio of position to orientation noise enters through the whitening).
+    Pure error: scatter of the whitened residuals within each group of repeats, entry by entry
+    (the same entry of each repeat: ``entry`` numbers the entries within a row; an entry seen
+    in ``n`` repeats gives ``n - 1`` degrees of freedom); lack of fit: the rest of the residual
+    sum of squares. Needs no noise value (only the ratio of the noise of the entries enters
+    through the whitening). ``row (N,)`` is the measurement row of each entry; without
+    ``row``/``entry``, 6 entries per pose in pose order.
 
     ``floor2`` is the mean square of rounding error per entry of ``r`` (:func:`rounding_floor`).
     The pure-error mean square is never taken below it: exactly repeated, noise-free poses
@@ -383,13 +396,17 @@ def lack_of_fit(
     """
     if not groups:
         return None
-    R = r.reshape(-1, 6)
+    if row is None or entry is None:
+        row = np.repeat(np.arange(r.size // 6), 6)
+        entry = np.tile(np.arange(6), r.size // 6)
     ss_pe = 0.0
     df_pe = 0
     for g in groups:
-        d = R[g] - R[g].mean(axis=0)
-        ss_pe += float(np.sum(d * d))
-        df_pe += 6 * (g.size - 1)
+        sel = np.isin(row, g)
+        for e in np.unique(entry[sel]):
+            v = r[sel & (entry == e)]
+            ss_pe += float(np.sum((v - v.mean()) ** 2))
+            df_pe += v.size - 1
     df_lof = df_resid - df_pe
     if df_lof <= 0 or df_pe <= 0:
         return None
@@ -418,44 +435,57 @@ def rounding_floor(positions_mm: np.ndarray) -> tuple[float, float]:
 def variance_components(
     e: np.ndarray,
     D: np.ndarray,
-    floor: tuple[float, float],
+    groups: np.ndarray,
+    floors: np.ndarray,
     *,
     iterations: int = 100,
     rtol: float = 1e-10,
-) -> tuple[float, float]:
-    """Position and rotation noise ``(sp, sr)`` estimated from a residual, separately.
+) -> np.ndarray:
+    """The noise std of each group of residual entries, estimated from a residual.
 
-    ``e (6 m,)`` is the residual in physical units (per pose: the tool-point position error in
-    mm, then the rotation in rad) and ``D (6 m, n)`` the Jacobian of the fitted parameters in
-    the same units. Each group's variance is its weighted residual sum of squares over its
-    share of the residual degrees of freedom (Foerstner's variance-component estimation,
-    REML-like): with rows weighted by ``1 / s``, ``H`` the hat matrix of the weighted fit,
+    ``e (N,)`` is the residual in physical units (e.g. per pose the tool-point position error
+    in mm, then the rotation in rad; per point mm) and ``D (N, n)`` the Jacobian of the fitted
+    parameters in the same units; ``groups (N,)`` numbers each entry's group ``0 .. G-1`` and
+    ``floors (G,)`` the smallest std of each. Each group's variance is its weighted residual
+    sum of squares over its share of the residual degrees of freedom (Foerstner's
+    variance-component estimation, REML-like): with rows weighted by ``1 / s``, ``H`` the hat
+    matrix of the weighted fit,
 
         ``s_g^2 = sum_{i in g} (s_g res_i)^2 / (n_g - sum_{i in g} H_ii)``,
 
     iterated to its fixed point (the weighted fit and ``H`` depend on ``s``). Each std is kept
-    at or above its ``floor`` (:func:`rounding_floor`), so that exact data give the rounding
-    floor rather than zero. With one fixed ratio instead (the 1 mm : 1 mrad weighting used
-    before), the whitened residual of a device whose ratio differs is not homoscedastic, and
-    the candidate F tests, which assume it is, fire on clean data.
+    at or above its floor (:func:`rounding_floor`), so that exact data give the rounding floor
+    rather than zero. With one fixed ratio instead (say 1 mm : 1 mrad), the whitened residual
+    of a device whose ratio differs is not homoscedastic, and the candidate F tests, which
+    assume it is, fire on clean data.
+
+    Returns:
+        ``(G,)`` the stds.
     """
-    N = e.shape[0]
-    pos = np.tile(np.array([True] * 3 + [False] * 3), N // 6)
-    fp, fr = float(floor[0]), float(floor[1])
-    sp = max(float(np.sqrt(np.mean(e[pos] ** 2))), fp)
-    sr = max(float(np.sqrt(np.mean(e[~pos] ** 2))), fr)
+    groups = np.asarray(groups, dtype=int)
+    floors = np.asarray(floors, dtype=float)
+    n_groups = floors.size
+    s = np.array(
+        [
+            max(float(np.sqrt(np.mean(e[groups == g] ** 2))) if np.any(groups == g) else 0.0, f)
+            for g, f in enumerate(floors)
+        ]
+    )
     for _ in range(iterations):
-        s = np.where(pos, sp, sr)
-        U = orthonormal_basis(D / s[:, None])
-        rw = e / s
+        w = s[groups]
+        U = orthonormal_basis(D / w[:, None])
+        rw = e / w
         res = rw - U @ (U.T @ rw)
         h = np.sum(U * U, axis=1)
-        new = []
-        for g, sg, fg in ((pos, sp, fp), (~pos, sr, fr)):
-            dof = max(float(g.sum() - h[g].sum()), 1.0)
-            new.append(max(sg * float(np.sqrt(np.sum(res[g] ** 2) / dof)), fg))
-        done = abs(new[0] - sp) <= rtol * sp and abs(new[1] - sr) <= rtol * sr
-        sp, sr = new
+        new = s.copy()
+        for g in range(n_groups):
+            sel = groups == g
+            if not sel.any():
+                continue
+            dof = max(float(sel.sum() - h[sel].sum()), 1.0)
+            new[g] = max(s[g] * float(np.sqrt(np.sum(res[sel] ** 2) / dof)), floors[g])
+        done = bool(np.all(np.abs(new - s) <= rtol * s))
+        s = new
         if done:
             break
-    return sp, sr
+    return s

@@ -339,10 +339,10 @@ class Measurements:
                     f"row {int(np.flatnonzero(~seen)[0])} measures neither a full pose nor a point"
                 )
         aux_out: dict[str, np.ndarray] = {}
-        for name, v in (aux or {}).items():
+        for name, column in (aux or {}).items():
             if not _is_aux(name, arm):
                 raise ValueError(f"aux: unknown auxiliary column {name!r}; known: {_aux_text(arm)}")
-            a = np.asarray(v, dtype=float)
+            a = np.asarray(column, dtype=float)
             if a.shape != (m,) or not np.all(np.isfinite(a)):
                 raise ValueError(f"aux[{name!r}]: expected {m} finite numbers, got shape {a.shape}")
             if name.startswith("approach.") and not np.all(np.abs(a) == 1.0):

@@ -53,26 +53,27 @@ def _figure(w: float, h: float) -> Figure:
 def residual_vs_regressors_figure(arm: Arm, meas: Measurements, diagnosis) -> Figure:
     """Held-out position and rotation errors versus every regressor, before and after."""
     regs = regressors(arm, meas)
-    before = np.asarray(diagnosis.residuals["before"])
-    after = np.asarray(diagnosis.residuals["after"])
+    before, after = diagnosis.residuals["before"], diagnosis.residuals["after"]
+    kinds = _kinds(before)
     n = len(regs)
     ncol = min(4, n)
-    nrow = 2 * int(np.ceil(n / ncol))
+    per = len(kinds)
+    nrow = per * int(np.ceil(n / ncol))
     fig = _figure(3.2 * ncol, 2.2 * nrow)
     axes = fig.subplots(nrow, ncol, squeeze=False)
     label = diagnosis.effect if diagnosis.effect not in ("none", "unattributed") else "geometric"
     for idx, (name, x) in enumerate(regs.items()):
-        r0, c = 2 * (idx // ncol), idx % ncol
-        for row, sl, unit in ((r0, slice(0, 3), "mm"), (r0 + 1, slice(3, 6), "rad")):
-            ax = axes[row][c]
-            ax.scatter(x, np.linalg.norm(before[:, sl], axis=1), s=8, c="0.6", label="geometric")
-            ax.scatter(x, np.linalg.norm(after[:, sl], axis=1), s=8, c="C1", label=f"+ {label}")
+        r0, c = per * (idx // ncol), idx % ncol
+        for row, (key, unit) in enumerate(kinds):
+            ax = axes[r0 + row][c]
+            ax.scatter(x, before[key], s=8, c="0.6", label="geometric")
+            ax.scatter(x, after[key], s=8, c="C1", label=f"+ {label}")
             ax.set_xlabel(name, fontsize=8)
             ax.set_ylabel(f"held-out error ({unit})", fontsize=8)
             ax.tick_params(labelsize=7)
-    for idx in range(n, (nrow // 2) * ncol):
-        axes[2 * (idx // ncol)][idx % ncol].set_visible(False)
-        axes[2 * (idx // ncol) + 1][idx % ncol].set_visible(False)
+    for idx in range(n, (nrow // per) * ncol):
+        for row in range(per):
+            axes[per * (idx // ncol) + row][idx % ncol].set_visible(False)
     axes[0][0].legend(fontsize=7)
     fig.suptitle(
         f"held-out residuals: {diagnosis.effect}"
@@ -84,23 +85,30 @@ def residual_vs_regressors_figure(arm: Arm, meas: Measurements, diagnosis) -> Fi
 
 def residual_per_pose_figure(diagnosis) -> Figure:
     """Held-out errors in pose order, before and after, with the noise floor."""
-    before = np.asarray(diagnosis.residuals["before"])
-    after = np.asarray(diagnosis.residuals["after"])
+    before, after = diagnosis.residuals["before"], diagnosis.residuals["after"]
     floor = diagnosis.details["noise_floor"]
-    fig = _figure(8, 4.5)
-    axes = fig.subplots(2, 1, sharex=True)
-    i = np.arange(before.shape[0])
-    for ax, sl, unit, fl in (
-        (axes[0], slice(0, 3), "mm", floor["delta_p_mm"]),
-        (axes[1], slice(3, 6), "rad", floor["delta_R_rad"]),
-    ):
-        ax.plot(i, np.linalg.norm(before[:, sl], axis=1), "o-", c="0.6", ms=3, label="geometric")
-        ax.plot(i, np.linalg.norm(after[:, sl], axis=1), "o-", c="C1", ms=3, label="refit")
-        ax.axhline(fl, c="k", ls=":", lw=1, label="noise floor (RMS)")
+    kinds = _kinds(before)
+    fig = _figure(8, 2.25 * len(kinds))
+    axes = fig.subplots(len(kinds), 1, sharex=True, squeeze=False)[:, 0]
+    i = np.arange(np.asarray(before["position_mm"]).shape[0])
+    floors = {"position_mm": floor["delta_p_mm"], "rotation_rad": floor["delta_R_rad"]}
+    for ax, (key, unit) in zip(axes, kinds, strict=True):
+        ax.plot(i, before[key], "o-", c="0.6", ms=3, label="geometric")
+        ax.plot(i, after[key], "o-", c="C1", ms=3, label="refit")
+        if floors[key] is not None and np.isfinite(floors[key]):
+            ax.axhline(floors[key], c="k", ls=":", lw=1, label="noise floor (RMS)")
         ax.set_ylabel(f"held-out error ({unit})")
     axes[0].legend(fontsize=8)
-    axes[1].set_xlabel("pose (file order)")
+    axes[-1].set_xlabel("pose (file order)")
     return fig
+
+
+def _kinds(per_row: dict) -> list[tuple[str, str]]:
+    """The error kinds a diagnosis has per row: position (always), rotation (full poses)."""
+    kinds = [("position_mm", "mm")]
+    if np.any(np.isfinite(np.asarray(per_row["rotation_rad"], dtype=float))):
+        kinds.append(("rotation_rad", "rad"))
+    return kinds
 
 
 def save_diagnosis_plots(

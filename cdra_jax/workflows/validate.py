@@ -333,7 +333,7 @@ def _registered(arm: Arm, meas: Measurements, register: bool) -> Arm:
     if placed:
         out = out.with_markers(
             [
-                dataclasses.replace(mk, xyz=tuple(float(v) for v in placed[mk.name]))
+                dataclasses.replace(mk, xyz=_xyz(placed[mk.name]))
                 if mk.name in placed
                 else mk
                 for mk in arm.markers
@@ -348,3 +348,8 @@ def _with_markers_of(other: Arm, model: Arm, meas: Measurements) -> Arm:
     have = {mk.name for mk in other.markers}
     missing = [mk for mk in model.markers if mk.name not in have and mk.name in meas.point_names]
     return other.with_markers([*other.markers, *missing]) if missing else other
+
+
+def _xyz(v) -> tuple[float, float, float]:
+    """Three floats (mm) from an array of shape ``(3,)``."""
+    return (float(v[0]), float(v[1]), float(v[2]))
