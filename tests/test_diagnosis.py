@@ -433,3 +433,45 @@ def test_gravity_turns_with_the_registered_base_frame():
     frames[0] = turn @ frames[0]
     moved = _gravity_in_fit_frame(arm.with_frames(frames), arm)
     np.testing.assert_allclose(np.asarray(moved.gravity), [0.0, 9.81, 0.0], atol=1e-12)
+
+
+def test_the_refit_model_predicts_poses_the_diagnosis_never_saw(tmp_path, capsys):
+    """diagnose --model-out writes the fitted frames plus the found effect as [[effects]];
+    validate predicts new poses with it far better than with the geometric calibration of the
+    same recording, close to the noise."""
+    import jax
+
+    from cdra_jax.io import load_model
+    from cdra_jax.modules.tension import sample_feasible_states
+
+    c = find("periodic_error", "elbow", "k=2")
+    values = [0.002, 0.001]
+    b = base()
+    fit = save_measurements(recordings(c, values), tmp_path / "fit.csv")
+    # 30 other poses of the same arm and effect (the same shapes: no new compilation)
+    q = np.asarray(sample_feasible_states(jax.random.PRNGKey(77), b.arm, 30))
+    T = np.array(c.tool_pose(b.actual, q, b.aux, jnp.asarray(values)))
+    rng = np.random.default_rng(78)
+    T[:, :3, 3] += NOISE.position_mm * rng.standard_normal((30, 3))
+    aux = {k: np.asarray(v) for k, v in b.aux.items()}
+    test = save_measurements(Measurements.from_arrays(b.arm, q, T, aux=aux), tmp_path / "test.csv")
+    out, refit = tmp_path / "diag.json", tmp_path / "refit.toml"
+    assert main(["diagnose", "--data", str(fit), "--out", str(out), "--model-out", str(refit)]) == 0
+    cal = tmp_path / "cal.toml"
+    argv = ["calibrate", "--data", str(fit), "--out", str(tmp_path / "cal.json")]
+    assert main(argv + ["--model-out", str(cal)]) == 0
+    val = tmp_path / "val.json"
+    argv = ["validate", "--model", str(refit), "--compare", str(cal), "--data", str(test)]
+    assert main(argv + ["--out", str(val)]) == 0
+    capsys.readouterr()
+    res = json.loads(val.read_text())
+    geometric = res["compare"]["position_error_mm"]["rms"]
+    found = res["position_error_mm"]["rms"]
+    assert found < 0.5 * geometric, (found, geometric)
+    assert found < 2.0 * NOISE.position_mm * np.sqrt(3), found
+    model = load_model(refit)
+    assert [(e.name, e.location, e.variant) for e in model.effects] == [
+        ("periodic_error", "elbow", "k=2")
+    ]
+    diag = json.loads(out.read_text())
+    assert diag["refit_model"]["effects"][0]["effect"] == "periodic_error"

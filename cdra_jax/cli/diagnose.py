@@ -1,8 +1,9 @@
 """``cdra-jax diagnose``: the missing-physics analyser on a model file and a measurement CSV.
 
 A thin layer over :func:`cdra_jax.workflows.diagnose`: prints the plain-words report and the
-candidate table, writes the diagnosis JSON and, with ``--plots``, residual figures before and
-after the refit. Exit code 0, also when a mismatch is found.
+candidate table, writes the diagnosis JSON, with ``--model-out`` the refit model (frames plus
+the found effect under ``[[effects]]``) and, with ``--plots``, residual figures before and after
+the refit. Exit code 0, also when a mismatch is found.
 """
 
 from __future__ import annotations
@@ -32,6 +33,12 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--data", metavar="D", required=True, help="measurement CSV file")
     p.add_argument("--out", metavar="R", required=True, help="diagnosis JSON file to write")
     common.add_noise_options(p, "of the measuring device (without them the noise is estimated)")
+    p.add_argument(
+        "--model-out",
+        metavar="M",
+        help="also write the refit model as a model TOML: the fitted frames plus the selected "
+        "effect under [[effects]] (validate predicts with it, calibrate refines it)",
+    )
     p.add_argument("--plots", metavar="DIR", help="write residual plots (PNG) into this folder")
     p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
     p.add_argument("--seed", type=int, default=0, help="seed of the folds (default 0)")
@@ -48,8 +55,12 @@ def run(args: argparse.Namespace) -> int:
     check_seed(args.seed, "--seed")
     if not 0 < args.alpha < 1:
         raise ValueError(f"--alpha must be a number in (0, 1), got {args.alpha}")
-    check_distinct_files([("--out", args.out)], [("--data", args.data), ("--model", args.model)])
+    check_distinct_files(
+        [("--out", args.out), ("--model-out", args.model_out)],
+        [("--data", args.data), ("--model", args.model)],
+    )
     check_output(args.out, args.force, "--out")
+    check_output(args.model_out, args.force, "--model-out")
     if args.plots is not None and Path(args.plots).exists() and not Path(args.plots).is_dir():
         raise NotADirectoryError(f"--plots {args.plots}: exists and is not a folder")
 
@@ -57,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     d = diagnose(args.model, args.data, noise, seed=args.seed, folds=args.folds, alpha=args.alpha)
     lines = [d.report(), "", common.wrote(d.save(args.out, force=args.force))]
+    if args.model_out:
+        lines.append(common.wrote(d.save_model(args.model_out, force=args.force)))
     if args.plots is not None:
         lines += [common.wrote(p) for p in d.save_plots(args.plots, force=args.force)]
     print("\n".join(lines))

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from ..arm import Arm
+from ..arm import Arm, Marker
 from ..calibration import NoiseModel
 from ..calibration.auto import calibrate_auto
 from ..calibration.model import stacked_system
@@ -43,13 +43,14 @@ from ..calibration.observations import (
     ROW_POSITION,
     ROW_ROTATION,
     Observations,
+    apply_parameters,
     make_observations,
     marker_table,
     row_layout,
 )
 from ..calibration.validation import MIN_POSES
 from ..io.measurements import Measurements
-from ..physics import PROBES, VOCABULARY, Candidate, Effect, Features, candidates
+from ..physics import PROBES, VOCABULARY, Candidate, Effect, Features, candidates, with_effects
 from . import stats
 from .model import Extended, all_features, geometric_fit, joint_refit, residual_and_jacobian
 from .report import render_report
@@ -560,6 +561,8 @@ def diagnose(
     refit_info: dict = {}
     best: Candidate | None = None
     ho1: stats.HeldOut | None = None
+    y_model = np.zeros(n_geo + F_all.n_params)  # the written model: the geometric fit ...
+    model_forms: list[Candidate] = []  # ... plus the selected effect's forms
     significant = [
         chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["merit"] or -1.0) > 0
     ]
@@ -600,6 +603,7 @@ def diagnose(
         if given and p_after is not None and p_after < alpha and explained < EXPLAINED_MIN:
             effect_name = "unattributed"
         else:
+            y_model, model_forms = y1, list(forms)
             effect_name = best.name
             located_in = best.location
             row = by_key[(best.name, best.location)]
@@ -690,8 +694,44 @@ def diagnose(
         "before": _per_row(ho0.residual * layout.scale, layout, m),
         "after": _per_row((ho1 if ho1 is not None else ho0).residual * layout.scale, layout, m),
     }
+    diag.refit_arm = _refit_model(problem, y_model, model_forms, cols, arm, meas.point_names)
     diag.report = render_report(diag, best)
     return diag
+
+
+def _refit_model(
+    problem: Extended,
+    y: np.ndarray,
+    forms: Sequence[Candidate],
+    cols: dict,
+    nominal: Arm,
+    point_names: Sequence[str],
+) -> Arm:
+    """The model the diagnosis ends with, in the model contract: the frames (and calibrated
+    marker positions) at ``y``, the effect ``forms`` with their parameters from ``y`` as
+    ``[[effects]]``, gravity in the fitted world frame (:func:`_gravity_in_fit_frame`)."""
+    n = problem.n_geometric
+    frames, xyz = apply_parameters(
+        jnp.asarray(y[:n]), jnp.asarray(problem.arm.frames), problem.xyz, problem.calibrated
+    )
+    out = _gravity_in_fit_frame(problem.arm.with_frames(frames), nominal)
+    xyz = np.asarray(xyz, float)
+    placed = {point_names[j]: xyz[j] for j in problem.calibrated}
+    if placed:
+        out = out.with_markers(
+            [
+                Marker(mk.name, _xyz(placed[mk.name]), mk.calibrate) if mk.name in placed else mk
+                for mk in out.markers
+            ]
+        )
+    if forms:
+        theta = np.concatenate([y[n + cols[c].start : n + cols[c].stop] for c in forms])
+        out = with_effects(out, forms, theta)
+    return out
+
+
+def _xyz(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def _explained(excess_before: float, excess_after: float) -> float:

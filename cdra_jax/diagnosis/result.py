@@ -159,6 +159,11 @@ class Diagnosis:
     report: str = ""
     tests: dict[str, Any] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
+    refit_arm: Any = field(default=None, repr=False)
+    """The model the diagnosis ends with (an :class:`~cdra_jax.arm.Arm`, not in this mapping;
+    the diagnose workflow writes it): the geometric fit's frames and markers, plus the selected
+    effect as ``[[effects]]`` with its refitted parameters (none for ``none`` and
+    ``unattributed``)."""
     residuals: dict[str, Any] = field(default_factory=dict, repr=False)
     """Held-out errors per measurement row (not in the JSON): ``"before"`` / ``"after"`` map
     ``"position_mm"`` ``(m,)`` (RMS norm of the row's position errors: the full pose's tool

@@ -20,7 +20,7 @@ from ..arm import Arm
 from ..calibration import NoiseModel
 from ..diagnosis import Diagnosis
 from ..diagnosis import diagnose as _diagnose
-from ..io import Measurements
+from ..io import Measurements, arm_to_dict, save_model
 from ..plots import residual_vs_regressors_figure, save_diagnosis_plots
 from .inputs import Data, Model, check_range, check_seed, resolve_arm, resolve_measurements
 from .result import JsonResult
@@ -45,12 +45,27 @@ class DiagnosisRun(JsonResult):
     model_label: str
     data_label: str
 
+    @property
+    def refit_arm(self) -> Arm:
+        """The model the diagnosis ends with: the geometric fit's frames (and calibrated
+        markers) plus the selected effect as ``[[effects]]`` with its refitted parameters (the
+        geometric fit alone when the effect is ``none`` or ``unattributed``)."""
+        return self.diagnosis.refit_arm
+
     def to_dict(self) -> dict[str, Any]:
-        """The diagnosis mapping with the model and data labels (the diagnosis JSON)."""
+        """The diagnosis mapping with the model and data labels and the refit model in the
+        model contract (``refit_model``, what :meth:`save_model` writes): the diagnosis JSON."""
         out = self.diagnosis.to_dict()
         out["model"] = self.model_label
         out["data"] = self.data_label
+        out["refit_model"] = arm_to_dict(self.refit_arm, exact=True)
         return out
+
+    def save_model(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write :attr:`refit_arm` as a model TOML file (frames as exact 4x4 matrices, the
+        effect under ``[[effects]]``), loadable by every command (``--model``): ``validate``
+        predicts with it, ``calibrate`` refines it."""
+        return save_model(self.refit_arm, path, exact=True, force=force)
 
     def report(self) -> str:
         """The plain-words verdict and the candidate table (what ``cdra-jax diagnose`` prints)."""
