@@ -498,7 +498,8 @@ def _markers(source: str, specs: Any) -> tuple[Marker, ...]:
             raise _err(source, f"{where}.calibrate", f"expected true or false, got {calibrate!r}")
         if any(m.name == name for m in out):
             raise _err(source, where, f"marker name {name!r} is used twice")
-        out.append(Marker(name=name, xyz=tuple(float(v) for v in xyz), calibrate=calibrate))
+        position = (float(xyz[0]), float(xyz[1]), float(xyz[2]))
+        out.append(Marker(name=name, xyz=position, calibrate=calibrate))
     return tuple(out)
 
 
