@@ -90,6 +90,8 @@ EXPECTED_TEXT: dict[str, tuple[str, ...]] = {
         "nominal position [mm]",  # workflows.validate of the calibration on held-out poses
         "Most likely missing physics: the shoulder module's cables stretch",
         "held-out position error",
+        "predicted with the model's effects: cable_elasticity@shoulder",  # the refit model
+        "with the effect",
     ),
     "04_cdpm_modules.ipynb": (
         "100% successful",  # forward kinematics from exact lengths

@@ -360,7 +360,7 @@ def _geometric_start(arm: Arm, meas: Measurements, q, aux, noise: NoiseModel | N
             features=none,
         )
         fit = {
-            "solver": "paper (weighted)",
+            "solver": "weighted Gauss-Newton",
             "converged": bool(sol.converged),
             "iterations": int(sol.iterations),
         }
@@ -396,7 +396,7 @@ def _geometric_start(arm: Arm, meas: Measurements, q, aux, noise: NoiseModel | N
             lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt), problem, _sigmas(obs, *est, dtype)
         )
     fit = {
-        "solver": "auto (least squares)",
+        "solver": "auto solver, least squares",
         "converged": bool(auto.converged),
         "iterations": int(auto.iterations),
     }
