@@ -18,15 +18,16 @@ Besides optimistix' own termination the loop stops on MINPACK-style tests of the
 proposed step (:func:`_converged`).
 
 In float64 (default ``rcond``, more than ``1.5 n`` rows:
-:func:`.linear.normal_equations_apply`) the basis is taken from the normal equations
-instead of an SVD: ``B = L (L^T L)^-1`` with ``L`` the pivoted Cholesky factor of
-``D~^T D~`` (:func:`.linear.whitening_basis_normal`), which spans the same subspace with
-``D~ B`` orthonormal, an orthogonal change of the coordinates ``u`` (LM's steps are invariant
-under it, its max-norm stopping tests to rounding). As for the paper solver's steps, a trial
-whose basis pivots are not resolved (:data:`.linear.RESOLVED_PIVOT`) or whose basis rank
-differs from the SVD rank at the solution is solved again with the SVD basis, the trials to
-redo gathered into chunks of their own (:func:`.batching.two_pass`). 15 CDRA poses, 10^4
-trials: 1.25x faster (LM / paper solver time, interleaved: 2.03-2.18 -> 1.59-1.63).
+:func:`.linear.normal_equations_apply`) the basis is taken from the normal equations and the
+structural null space of ``D`` known in closed form (:mod:`.nullspace`), instead of an SVD:
+``B = W S L^-T`` with ``W`` the orthonormal complement of the null basis and ``L`` the plain
+Cholesky factor of the Jacobi-scaled ``W^T D~^T D~ W`` (:func:`.linear.null_space_basis`),
+which spans the same subspace with ``D~ B`` orthonormal, an orthogonal change of the
+coordinates ``u`` (LM's steps are invariant under it, its max-norm stopping tests to
+rounding). As for the paper solver's steps, a trial whose data lose more directions than the
+structural ones (the Cholesky factor's eigenvalue bound below :data:`.linear.RESOLVED_PIVOT`)
+does not iterate and is solved again with the SVD basis, the trials to redo gathered into
+chunks of their own (:func:`.batching.two_pass`).
 
 Damping. optimistix starts its trust region at a step size of 1, i.e. a damping
 ``lambda = 1`` on ``J^T J``, which in the rescaled coordinates (``J^T J ~= I``) halves the
@@ -82,11 +83,13 @@ from . import kernels
 from .batching import batched_like, chunked_vmap
 from .linear import (
     RESOLVED_PIVOT,
+    STRUCTURAL_TOL,
     default_rcond,
     normal_equations_apply,
-    whitening_basis_normal,
+    null_space_basis,
 )
 from .model import NoiseModel
+from .nullspace import null_basis, null_generators
 from .solution import (
     RESULTS,
     CalibrationSolution,
@@ -131,6 +134,7 @@ def calibrate_lm(
     rcond: float | None = None,
     allow_underdetermined: bool = False,
     throw: bool = True,
+    singular_values: bool = True,
 ) -> CalibrationSolution:
     """Calibrate the fixed transforms of ``arm`` with optimistix's Levenberg-Marquardt.
 
@@ -142,7 +146,10 @@ def calibrate_lm(
     unidentifiable directions of the nominal linearisation (rank cut-off ``rcond``) are left
     at zero, as the paper solver's minimum-norm steps do to first order. Differentiable like
     :func:`calibrate_paper`, through the condition ``J^T Y~ = 0`` (:mod:`.implicit`).
+    ``singular_values=False`` skips the final QR and SVD as for :func:`calibrate_paper` (the
+    rank is then that of the identifiable basis).
     """
+    null_modules, _ = null_generators(arm)
 
     def make_solver(dtype):
         return _lm_solver(
@@ -151,6 +158,8 @@ def calibrate_lm(
             atol=dtype_default(atol, dtype, float64=ATOL_FLOAT64, float32=ATOL_FLOAT32),
             rcond=rcond,
             weighted=noise is not None,
+            null_modules=null_modules,
+            singular_values=singular_values,
         )
 
     return _solve_problem(
@@ -161,6 +170,7 @@ def calibrate_lm(
         noise,
         allow_underdetermined=allow_underdetermined,
         throw=throw,
+        extra=lambda dtype: (null_generators(arm, dtype)[1],),
     )
 
 
@@ -209,7 +219,9 @@ def _residual_fn(frames0, poses, measured, noise, basis):
     return lambda u, _: residual(u)
 
 
-def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
+def _lm_solver(
+    *, max_iterations, rtol, atol, rcond, weighted, null_modules=(), singular_values=True
+):
     """The per-trial LM solver for one static configuration, chunked under ``vmap``."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     options: dict = {}
@@ -292,10 +304,11 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         k, u, basis, _, steps, dps, dRs, done, ok = carry
         return k, basis @ u, steps, dps, dRs, done, ok
 
-    def basis_of(lin0, use_svd, fast_allowed):
+    def basis_of(lin0, use_svd, fast_allowed, frames0, xi):
         """``X = basis @ u``: whitened coordinates of the identifiable subspace (module
-        docstring); ``(basis, rank, resolved)``. From the normal equations (fast) unless
-        ``use_svd`` (an unbatched scalar: a real branch) or the fast basis does not apply."""
+        docstring); ``(basis, rank, resolved)``. From the normal equations and the structural
+        null space (fast) unless ``use_svd`` (an unbatched scalar: a real branch) or the fast
+        basis does not apply."""
 
         def svd_basis(lin):
             basis = _identifiable_basis(lin, rcond)
@@ -303,14 +316,19 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
 
         def normal_basis(lin):
             N, _ = lin.normal_equations()
-            basis, rank, pivot = whitening_basis_normal(N)
-            return basis, rank, pivot >= RESOLVED_PIVOT
+            Z = null_basis(frames0, null_modules, xi)
+            basis, smallest, structural = null_space_basis(N, Z)
+            trusted = (smallest >= RESOLVED_PIVOT) & (structural <= STRUCTURAL_TOL)
+            trusted = trusted & jnp.all(jnp.isfinite(basis))
+            # An untrusted basis (the trial is redone with the SVD basis): a finite one.
+            basis = jnp.where(trusted, basis, jnp.eye(basis.shape[0], dtype=basis.dtype))
+            return basis, jnp.asarray(basis.shape[0] - len(null_modules)), trusted
 
         if not fast_allowed:
             return svd_basis(lin0)
         return jax.lax.cond(use_svd, svd_basis, normal_basis, lin0)
 
-    def run(use_svd, *args):
+    def run(use_svd, frames0, poses, measured, xi, *noise_std):
         """One trial: two passes of one loop, each linearising its model (Eq. 9) with the same
         code: pass 0 at the nominal frames, for the identifiable basis, then the LM iteration;
         pass 1 at the solution, for the rank and the final metrics. (Linearising before and
@@ -318,7 +336,7 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         longer.) Returns ``(solution, redo)``: redo with the SVD basis (``use_svd``) where the
         fast basis' rank differs from the SVD rank at the solution or its pivots are not
         resolved (:data:`.linear.RESOLVED_PIVOT`), as the paper solver does."""
-        frames0, poses, measured = args[:3]
+        args = (frames0, poses, measured, *noise_std)
         P, T, noise = setup(*args)
         dtype = measured.dtype
         n = 6 * frames0.shape[0]
@@ -326,10 +344,12 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
         fast_allowed = normal_equations_apply(dtype, rcond, 6 * T.shape[-1], n)
 
         def iterate(lin0):
-            basis, rank, resolved = basis_of(lin0, use_svd, fast_allowed)
+            basis, rank, resolved = basis_of(lin0, use_svd, fast_allowed, frames0, xi)
             # The static part of optimistix' state is the same at every step: taken once from
             # init (tracing solver.init again in the loop body doubled the tracing time).
             carry0, static_state = init(basis, finite_in, *args)
+            # An untrusted fast basis: no iteration (the trial is redone with the SVD basis).
+            carry0 = carry0[:7] + (carry0[7] | ~resolved,) + carry0[8:]
             carry = jax.lax.while_loop(running, lambda c: step(c, static_state, *args), carry0)
             k, X, steps, dps, dRs, done, ok = result(carry)
             frames = lie.se3_exp(X.reshape(frames0.shape[0], 6)) @ frames0
@@ -365,6 +385,7 @@ def _lm_solver(*, max_iterations, rtol, atol, rcond, weighted):
             lin,
             ok=ok,
             rcond=rcond,
+            rank=None if singular_values else basis_rank,
             done=done,
             iterations=k,
             step_norm=steps,

@@ -223,3 +223,103 @@ def svd_rank(D, rcond: float | None = None):
     rc = default_rcond(D.dtype) if rcond is None else float(rcond)
     rank = int(np.sum(s_full > rc * s_full[0])) if s_full[0] > 0 else 0
     return s_full, Vt, rank
+
+
+# ------------------------------------------------------------- normal equations, null space known
+STRUCTURAL_TOL = 1e-12
+"""Largest ``max |N_s Z_s|`` (the scaled normal equations of :func:`null_space_solve`, unit
+diagonal) for which the analytic null basis is taken as the null space of ``N``. Where the
+module poses are the modules' own motions, the structural directions give ``~n eps``
+(``1e-16`` to ``1e-14`` on random arms); ``1e-12`` is well below the pivot cut-off of
+:func:`normal_cutoff` (``3.7e-11``), so a basis that passes spans directions that the pivoted
+factorisation would drop too."""
+
+
+def null_space_solve(N: ArrayLike, g: ArrayLike, Z: ArrayLike) -> tuple[Array, Array, Array]:
+    """``N^+ g`` for ``g`` in the range of ``N`` when the null space of ``N`` is known.
+
+    With ``B (n, k)`` a basis of ``null(N)`` and ``A = N + B B^T`` (positive definite), the
+    solution of ``A x = g`` for ``g`` in ``range(N) = null(N)^perp`` splits into ``N x_r = g``
+    on ``null(N)^perp`` and ``B^T x = 0``, so ``x = N^+ g``: the minimum-norm step of
+    :func:`min_norm_solve_normal` and :func:`min_norm_lstsq`, from one plain Cholesky
+    factorisation (no pivoting, no rank decision).
+
+    The system is solved with the symmetric diagonal (Jacobi) scaling ``S = diag(N)^-1/2``:
+    ``N_s = S N S`` has a unit diagonal, its null space is spanned by ``S^-1 Z`` (orthonormalised
+    to ``Z_s``, so that ``A_s = N_s + Z_s Z_s^T`` has eigenvalue 1 there, the mean eigenvalue of
+    ``N_s``), and ``x = S A_s^-1 S g``, then the component along ``Z`` is projected out (it is
+    null for ``N``: only the scaled metric made it non-zero). Unscaled, the millimetre and
+    radian columns of the CDRA's ``N`` differ by ``|p|^2 ~ 1e6`` and an unpivoted factorisation
+    lost up to ``1e-8`` relative accuracy where the scaled one keeps ``1e-11`` (7-pose sets).
+
+    Whether this step can be trusted is returned with it, cheaply: the lower bound
+    ``1 / trace(A_s^-1) = 1 / |L^-1|_F^2 <= lambda_min(A_s)`` (at most ``n`` times too small;
+    the relative accuracy of ``x`` is about ``eps / lambda_min(A_s)``), to be tested against
+    :data:`RESOLVED_PIVOT`; and ``max |N_s Z_s|``, to be below :data:`STRUCTURAL_TOL` (``Z``
+    really is null). A pose set that loses more directions than the structural ones (too few or
+    degenerate poses) fails the first test (``A_s`` is then singular or nearly so: a tiny bound,
+    or NaN where its Cholesky factorisation breaks down).
+
+    Args:
+        N: ``(n, n)`` ``D~^T D~``. g: ``(n,)`` ``D~^T Y~``. Z: ``(n, k)`` orthonormal basis of
+            the null space of ``N`` (:mod:`.nullspace`); ``k = 0`` for none.
+
+    Returns:
+        ``(x (n,), smallest, structural)``: the step, the eigenvalue bound (NaN when the
+        factorisation broke down) and ``max |N_s Z_s|``.
+    """
+    N = jnp.asarray(N)
+    g = jnp.asarray(g, N.dtype)
+    Z = jnp.asarray(Z, N.dtype)
+    n = N.shape[-1]
+    d = jnp.sqrt(jnp.diagonal(N))
+    s = 1.0 / d
+    A = N * s[:, None] * s[None, :]
+    structural = jnp.zeros((), N.dtype)
+    if Z.shape[-1]:
+        Zs, _ = jnp.linalg.qr(Z * d[:, None])
+        structural = jnp.max(jnp.abs(A @ Zs))
+        A = A + Zs @ Zs.T
+    L = jnp.linalg.cholesky(A)
+    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(n, dtype=N.dtype), lower=True)
+    x = s * (Li.T @ (Li @ (s * g)))
+    if Z.shape[-1]:
+        x = x - Z @ (Z.T @ x)
+    return x, 1.0 / jnp.sum(Li * Li), structural
+
+
+def null_space_basis(N: ArrayLike, Z: ArrayLike) -> tuple[Array, Array, Array]:
+    """:func:`whitening_basis_normal` when the null space of ``N`` is known: ``B (n, n)`` with
+    ``B^T N B = I`` on its first ``n - k`` columns, which span ``null(N)^perp``, and zero
+    columns after them; without a pivoted factorisation.
+
+    ``W (n, n - k)``, an orthonormal basis of the complement of ``Z`` (the trailing columns of
+    the complete QR of ``Z``), reduces ``N`` to the positive definite ``N_W = W^T N W``; with its
+    Jacobi scaling ``S`` (as in :func:`null_space_solve`) and the Cholesky factor
+    ``S N_W S = L L^T``, ``B = W S L^-T``. The tests of the result are those of
+    :func:`null_space_solve`: ``1 / |L^-1|_F^2`` (to be at least :data:`RESOLVED_PIVOT`) and
+    ``max |N_s Z_s|`` (at most :data:`STRUCTURAL_TOL`).
+
+    Returns:
+        ``(B (n, n), smallest, structural)``.
+    """
+    N = jnp.asarray(N)
+    Z = jnp.asarray(Z, N.dtype)
+    n, k = N.shape[-1], Z.shape[-1]
+    d = jnp.sqrt(jnp.diagonal(N))
+    structural = jnp.zeros((), N.dtype)
+    if k:
+        Q, _ = jnp.linalg.qr(Z, mode="complete")
+        W = Q[:, k:]
+        Zs, _ = jnp.linalg.qr(Z * d[:, None])
+        structural = jnp.max(jnp.abs((N / d[:, None] / d[None, :]) @ Zs))
+        NW = W.T @ N @ W
+    else:
+        W = jnp.eye(n, dtype=N.dtype)
+        NW = N
+    s = 1.0 / jnp.sqrt(jnp.diagonal(NW))
+    L = jnp.linalg.cholesky(NW * s[:, None] * s[None, :])
+    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(n - k, dtype=N.dtype), lower=True)
+    B = (W * s[None, :]) @ Li.T
+    B = jnp.concatenate([B, jnp.zeros((n, k), N.dtype)], axis=1)
+    return B, 1.0 / jnp.sum(Li * Li), structural

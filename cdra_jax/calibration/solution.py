@@ -41,7 +41,9 @@ class CalibrationSolution(eqx.Module):
             nominal model, entry k after k steps, NaN past the end (mm).
         delta_R: the same for Eq. 21 (rad).
         rank: numerical rank of the (weighted) stacked Jacobian at the solution ``(...)``.
-        singular_values: its singular values ``(..., n_params)``.
+        singular_values: its singular values ``(..., n_params)``; NaN where the solver was
+            called with ``singular_values=False`` (the rank is then the solve's own: the
+            generic rank of :mod:`.nullspace`, or that of its SVD steps).
         cost: final weighted sum of squared residuals (paper form: unweighted) ``(...)``.
         solver: ``"paper"``, ``"weighted"`` or ``"lm"``.
 
@@ -118,6 +120,7 @@ def _solve_problem(
     *,
     allow_underdetermined: bool,
     throw: bool,
+    extra: Callable[[np.dtype], tuple[Array, ...]] | None = None,
 ) -> CalibrationSolution:
     """Check a calibration problem, run a per-trial solver on it and apply ``throw``.
 
@@ -126,7 +129,9 @@ def _solve_problem(
     ``solve(frames0 (K+1, 4, 4), poses (m, K, 4, 4), measured (m, 4, 4)[, s_pos, s_rot])``; the
     noise stds (scalars, or ``(m,)`` per pose) are passed only when a noise model is given.
     Shapes are checked by :func:`.validation.check_problem` and
-    :func:`.validation.check_noise` (``ValueError`` at trace time).
+    :func:`.validation.check_noise` (``ValueError`` at trace time). ``extra(dtype)``: further
+    arrays the solver takes after ``measured`` (the structural null generators of
+    :mod:`.nullspace`), without derivatives.
     """
     q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
     check_noise(noise, measured.shape[0])
@@ -136,7 +141,9 @@ def _solve_problem(
         args += (jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype))
     # The solvers iterate; their derivatives come from the optimality condition instead
     # (:mod:`.implicit`), so the iterations run on inputs without derivatives.
-    sol = make_solver(dtype)(*jax.lax.stop_gradient(args))
+    more = () if extra is None else tuple(extra(dtype))
+    solver_args = args[:3] + more + args[3:]
+    sol = make_solver(dtype)(*jax.lax.stop_gradient(solver_args))
     frames, errors, cost = implicit.attach(
         "lm" if sol.solver == "lm" else "gauss_newton",
         sol.frames,
@@ -195,25 +202,41 @@ def _assemble_solution(
 
 
 def _solution_at(
-    frames: Array, nominal: Array, lin, *, ok: Array, rcond: float | None, **history
+    frames: Array,
+    nominal: Array,
+    lin,
+    *,
+    ok: Array,
+    rcond: float | None,
+    rank: Array | None = None,
+    **history,
 ) -> CalibrationSolution:
     """:func:`_assemble_solution` at the final model of a solve, from its linearisation ``lin``
     (a :class:`.kernels.Linearisation`): the rank and singular values of the whitened Eq. 9
     Jacobian (cut-off ``rcond``, default :func:`.linear.default_rcond`), the cost ``|Y~|^2``, and
     ``ok`` only where Eqs. 20-21 are finite. ``history``: ``done``, ``iterations``,
     ``step_norm``, ``delta_p``, ``delta_R``, ``solver`` as for :func:`_assemble_solution`.
+
+    With ``rank`` given (the solve's own, e.g. ``n - k`` of the structural null space) the QR
+    and SVD are skipped: that rank is reported and the singular values are NaN (the solvers'
+    ``singular_values=False``; 20 % of a paper solve of 15 CDRA poses).
     """
     from .linear import default_rcond
 
-    # The singular values of D~ (6m x n) are those of the triangular factor of its QR
-    # decomposition (Householder, backward stable): an SVD of n x n instead of 6m x n.
-    s = jnp.linalg.svd(jnp.linalg.qr(lin.DT.T, mode="r"), compute_uv=False)
-    rc = default_rcond(lin.DT.dtype) if rcond is None else rcond
+    n = lin.DT.shape[0]
+    if rank is None:
+        # The singular values of D~ (6m x n) are those of the triangular factor of its QR
+        # decomposition (Householder, backward stable): an SVD of n x n instead of 6m x n.
+        s = jnp.linalg.svd(jnp.linalg.qr(lin.DT.T, mode="r"), compute_uv=False)
+        rc = default_rcond(lin.DT.dtype) if rcond is None else rcond
+        rank = jnp.sum(s > rc * s[..., :1], axis=-1)
+    else:
+        s = jnp.full((n,), jnp.nan, lin.DT.dtype)
     return _assemble_solution(
         frames,
         nominal,
         ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
-        rank=jnp.sum(s > rc * s[..., :1], axis=-1),
+        rank=rank,
         singular_values=s,
         cost=jnp.sum(lin.Y * lin.Y),
         **history,

@@ -1,0 +1,119 @@
+"""The structural null space of the calibration Jacobian ``D`` (Eq. 8), in closed form.
+
+With left-multiplied frame errors (Eqs. 11-14) a twist ``dt_j`` on the fixed frame ``F_j``
+moves the tool by the world twist ``Ad(P_j) dt_j``, ``P_j`` the world pose before ``F_j``
+(``P_0 = I``), so that ``D = [Ad(P_0), ..., Ad(P_K)]`` (Eq. 8, one block row per pose). Module
+``i`` sits between ``F_i`` and ``F_{i+1}`` (``P_{i+1} = P_i F_i M_i(q_i)``). Let ``xi`` be a
+twist, in the module's base frame, that every motion of the module leaves unchanged:
+``Ad(M_i(q)) xi = xi`` for all ``q``. Then
+
+    X = (dt_i = -Ad(F_i) xi,  dt_{i+1} = xi,  every other dt_j = 0)
+
+moves nothing at any pose: ``Ad(P_{i+1}) xi = Ad(P_i) Ad(F_i) Ad(M_i) xi = Ad(P_i) Ad(F_i) xi``
+cancels the first block (exactly, not only to first order: ``M exp(xi) = exp(xi) M`` and
+``F exp(xi) = exp(Ad(F) xi) F``). The invariant twists of each module kind, with ``Ad(M) =
+[[R, hat(p) R], [0, R]]`` (twists ``(v, w)``):
+
+* revolute about the unit axis ``a`` through the module origin (``R = exp(q hat(a))``,
+  ``p = 0``): ``R v = v`` and ``R w = w`` for all ``q``, so ``xi`` in span ``{(a, 0), (0, a)}``:
+  translation along and rotation about the joint axis (2 directions);
+* prismatic along ``a`` (``R = I``, ``p = q a``): ``(v + q a x w, w) = (v, w)`` for all ``q``, so
+  ``w`` parallel to ``a`` and ``v`` free: ``{(e_1, 0), (e_2, 0), (e_3, 0), (0, a)}`` (4);
+* spherical about the module origin (``p = 0``, every ``R``): ``v = w = 0`` (none).
+
+The directions of different modules are linearly independent (the last module's block
+``dt_{i+1} = xi`` appears in no earlier module's direction), so the structural nullity is
+``2 R + 4 P`` (``R`` revolute, ``P`` prismatic modules) and the generic rank of the
+calibration ``6 (K+1) - 2 R - 4 P = 6 + 4 R + 2 P + 6 S``, the count of identifiable
+parameters of a product-of-exponentials model (Chen, Yang, Tang and Yeo, 2001). For the paper's
+arm (two spherical modules and a revolute elbow) that is rank 22 of 24, the two elbow-axis
+directions of :mod:`cdra_jax.identifiability`. Pose sets that see less (too few or degenerate
+poses) add null directions of their own; this module only gives the structural ones, which
+hold for every pose set and every noise model (whitening ``G D`` keeps ``null(D)``).
+
+The basis depends on the current frames through ``Ad(F_i)``: the solvers rebuild it at every
+iterate (:func:`null_basis`, a few 6x6 products and a QR of an ``(n, k)`` matrix).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from .. import lie
+from ..arm import Arm
+
+
+def null_generators(arm: Arm, dtype=None) -> tuple[tuple[int, ...], Array]:
+    """The invariant twists of the arm's modules: ``(modules, xi)``.
+
+    Returns:
+        ``modules``: a static tuple, for each generator the index ``i`` of its module (between
+        ``frames[i]`` and ``frames[i+1]``); ``xi (k, 6)``: the generators ``(v, w)`` in the
+        module base frames (unit vectors; see the module docstring). ``k`` is ``2 R + 4 P``;
+        for an arm of spherical modules only, ``k = 0``.
+    """
+    dtype = dtype or jnp.asarray(arm.frames).dtype
+    modules: list[int] = []
+    rows = []
+    z3 = jnp.zeros(3, dtype)
+    for i, mod in enumerate(arm.modules):
+        a = jnp.asarray(mod.axis, dtype)
+        if mod.kind == "revolute":
+            new = [jnp.concatenate([a, z3]), jnp.concatenate([z3, a])]
+        elif mod.kind == "prismatic":
+            eye = jnp.eye(3, dtype=dtype)
+            new = [jnp.concatenate([eye[j], z3]) for j in range(3)]
+            new.append(jnp.concatenate([z3, a]))
+        else:  # spherical: no invariant twist
+            new = []
+        rows += new
+        modules += [i] * len(new)
+    xi = jnp.stack(rows) if rows else jnp.zeros((0, 6), dtype)
+    return tuple(modules), xi
+
+
+def null_directions(frames: ArrayLike, modules: tuple[int, ...], xi: ArrayLike) -> Array:
+    """The structural null directions ``A (n, k)`` of ``D`` at ``frames (K+1, 4, 4)``, not
+    orthonormalised: column ``c`` has ``-Ad(F_i) xi_c`` in block ``i`` and ``xi_c`` in block
+    ``i + 1`` (``i = modules[c]``). Linearly independent (module docstring)."""
+    frames = jnp.asarray(frames)
+    xi = jnp.asarray(xi, frames.dtype)
+    k1 = frames.shape[-3]
+    n = 6 * k1
+    k = len(modules)
+    if k == 0:
+        return jnp.zeros((n, 0), frames.dtype)
+    idx = np.asarray(modules)
+    moved = -jnp.einsum("cij,cj->ci", lie.adjoint(frames[idx]), xi)  # (k, 6)
+    A = jnp.zeros((k, k1, 6), frames.dtype)
+    cols = np.arange(k)
+    A = A.at[cols, idx].set(moved)
+    A = A.at[cols, idx + 1].set(xi)
+    return A.reshape(k, n).T
+
+
+def null_basis(frames: ArrayLike, modules: tuple[int, ...], xi: ArrayLike) -> Array:
+    """Orthonormal basis ``Z (n, k)`` of the structural null space of ``D`` at ``frames``
+    (:func:`null_directions`, orthonormalised by a QR)."""
+    A = null_directions(frames, modules, xi)
+    if A.shape[-1] == 0:
+        return A
+    Q, _ = jnp.linalg.qr(A)
+    return Q
+
+
+def structural_null_space(arm: Arm, frames: ArrayLike | None = None) -> Array:
+    """Orthonormal basis ``Z (6 (K+1), k)`` of the structural null space of the calibration
+    Jacobian of ``arm`` at ``frames`` (default: the arm's own), rows ordered as
+    ``arm.param_names``: ``D Z = 0`` for every pose set (module docstring)."""
+    frames = jnp.asarray(arm.frames if frames is None else frames)
+    modules, xi = null_generators(arm, frames.dtype)
+    return null_basis(frames, modules, xi)
+
+
+def structural_nullity(arm: Arm) -> int:
+    """``k = 2 R + 4 P``: the number of structural null directions (module docstring)."""
+    return sum({"revolute": 2, "prismatic": 4}.get(m.kind, 0) for m in arm.modules)
