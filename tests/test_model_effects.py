@@ -273,3 +273,17 @@ def test_variants_beyond_the_vocabulary_list(truth):
     assert model_effects(truth.with_effects([two]))[0] == cands
     with pytest.raises(ValueError, match=r"or any 'k=<k>\[,<k>...\]'"):
         model_effects(truth.with_effects([EffectRecord("periodic_error", "elbow", "k=0")]))
+
+
+def test_a_load_dependent_effect_is_refined_in_the_gauge(truth):
+    """A gravity-load effect depends (weakly) on the frames, also along the directions that the
+    tool poses do not determine; the refit keeps the start along them (the gauge), so the
+    noise-free recovery is to the small coupling (~1e-5 relative), and it converges."""
+    rec = EffectRecord("joint_compliance", "shoulder", "", (("compliance", 2e-6, "rad/(N*mm)"),))
+    model = truth.with_effects([rec])
+    run = simulate(model, 30, seed=2, d_w=0.01)
+    cal = calibrate(model.with_effects([rec.with_values([0.0])]), run.measurements)
+    assert cal.converged and cal.trusted
+    np.testing.assert_allclose(cal.calibrated_arm.effects[0].values, [2e-6], rtol=1e-3)
+    r = cal.to_dict()
+    assert r["identifiability"]["rank"] == 22 and r["final"]["rank"] == 23

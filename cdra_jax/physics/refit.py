@@ -12,10 +12,12 @@ dependence on the frames is left out of the Jacobian (``stop_gradient``), which 
 path of the iteration, not its fixed point.
 
 :func:`refine` is a Levenberg-Marquardt with column scaling and rank-revealing least-squares
-steps (the frames of an arm have unidentifiable directions, e.g. the CDRA's two along the
-elbow axis: the steps have no component along them). Without a noise model the position and
-rotation noise scales are estimated from the residual of a first solve and the problem is
-solved again with them.
+steps, restricted to the gauge: the frames of an arm have directions that tool poses do not
+determine (the CDRA's two along the elbow axis); the steps have no component along them
+(:func:`geometric_gauge`), even where an effect's features (a gravity torque, a bent link)
+depend on them slightly. Along them the refit keeps the start. Without a noise model the
+position and rotation noise scales are estimated from the residual of a first solve and the
+problem is solved again with them.
 
 :func:`extended_residual` is the one residual of the extended model with moved frames;
 the diagnosis can reuse it.
@@ -97,11 +99,15 @@ class EffectRefit:
         iterations: steps taken (over both solves when the noise is estimated).
         step_norm, delta_p, delta_R: per step: the norm of the step in ``y`` and Eqs. 20-21 of
             the extended model after it (``delta_p[0]``, ``delta_R[0]``: the model as given).
-        rank, singular_values: of the whitened, column-scaled Jacobian at the solution.
+        rank, singular_values: of the whitened, column-scaled Jacobian at the solution, in the
+            gauge (without the unidentifiable directions of the frame errors).
         n_params: ``6 (K+1) + p``.
         noise: the noise scales used (given, or estimated from the residual).
         noise_source: ``"given"`` or ``"estimated"``.
-        jacobian: the whitened Jacobian at the solution ``(6 m, n_params)``.
+        jacobian: the whitened Jacobian at the solution ``(6 m, n_params)``, projected on the
+            gauge (zero along the unidentifiable directions).
+        geometric_jacobian: the whitened Jacobian of the frame errors alone (the effects at
+            zero) at the solution ``(6 m, 6 (K+1))``: the frames' identifiability.
         cost: the final whitened sum of squares.
     """
 
@@ -123,20 +129,21 @@ class EffectRefit:
     noise_source: str
     jacobian: np.ndarray
     cost: float
+    geometric_jacobian: np.ndarray
 
     def calibrated_arm(self, arm: Arm) -> Arm:
         """``arm`` with the calibrated frames and the refined effect values."""
         return with_effects(arm.with_frames(jnp.asarray(self.frames)), self.candidates, self.theta)
 
 
-def _lm(y0, arm, cands, q, aux, measured, G, max_steps, rtol):
-    """Levenberg-Marquardt over all of ``y``; returns ``(y, converged, history, r, J)``."""
+def _lm(y0, P, arm, cands, q, aux, measured, G, max_steps, rtol):
+    """Levenberg-Marquardt on ``y = y0 + P z``; returns ``(y, converged, history, r, J P)``."""
     dtype = jnp.asarray(arm.frames).dtype
     y = np.array(y0, float)
 
     def evaluate(yy):
         r, J = _linearise(jnp.asarray(yy, dtype), arm, cands, q, aux, measured, G)
-        return np.asarray(r, float), np.asarray(J, float)
+        return np.asarray(r, float), np.asarray(J, float) @ P
 
     def metrics(yy):
         dp, dR, _, _ = _metrics(jnp.asarray(yy, dtype), arm, cands, q, aux, measured)
@@ -158,7 +165,7 @@ def _lm(y0, arm, cands, q, aux, measured, G, max_steps, rtol):
         A = np.vstack([Js, np.sqrt(lam) * np.eye(Js.shape[1])])
         b = np.concatenate([-r, np.zeros(Js.shape[1])])
         dz = np.linalg.lstsq(A, b, rcond=1e-12)[0]
-        step = scale * dz
+        step = P @ (scale * dz)
         trial = y + step
         r_t, J_t = evaluate(trial)
         cost_t = float(r_t @ r_t)
@@ -179,6 +186,36 @@ def _lm(y0, arm, cands, q, aux, measured, G, max_steps, rtol):
                 converged = True
                 break
     return y, converged, (np.asarray(steps), np.asarray(dps), np.asarray(dRs)), r, J
+
+
+def _scaled_svd(J: np.ndarray, rcond: float):
+    """``(scale, singular values, Vt, keep)`` of the column-scaled ``J``."""
+    norms = np.linalg.norm(J, axis=0)
+    scale = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0)
+    _, sv, Vt = np.linalg.svd(J * scale, full_matrices=False)
+    keep = sv > (sv[0] * rcond if sv.size else 0.0)
+    return scale, sv, Vt, keep
+
+
+GAUGE_RCOND = 1e-10
+"""Relative singular value (column-scaled) below which a direction of the frame errors is
+unidentifiable from tool poses (the CDRA's two sit at ~1e-16)."""
+
+
+def geometric_gauge(J_frames: np.ndarray, rcond: float = GAUGE_RCOND) -> tuple[np.ndarray, int]:
+    """``(P, k)``: an orthonormal basis ``P (n, n - k)`` (Euclidean, mixed units) of the frame
+    errors orthogonal to the ``k`` directions that the geometric Jacobian ``J_frames (rows, n)``
+    does not see. Steps restricted to ``P`` leave the unidentifiable directions as they are (the
+    package's gauge: no component along them)."""
+    n = J_frames.shape[1]
+    scale, _, Vt, keep = _scaled_svd(J_frames, rcond)
+    null = (scale[:, None] * Vt[~keep].T) if (~keep).any() else np.zeros((n, 0))
+    k = null.shape[1]
+    if not k:
+        return np.eye(n), 0
+    Q, _ = np.linalg.qr(null)
+    U, _, _ = np.linalg.svd(np.eye(n) - Q @ Q.T)
+    return U[:, : n - k], k
 
 
 def refine(
@@ -210,7 +247,7 @@ def refine(
     measured = jnp.asarray(measured, q.dtype)
     aux = {k: jnp.asarray(v, q.dtype) for k, v in aux.items()}
     cands, theta0 = model_effects(arm)
-    n = arm.n_params
+    n, p = arm.n_params, theta0.size
     X0 = np.zeros(n) if errors0 is None else np.asarray(errors0, float).reshape(n)
     y = np.concatenate([X0, theta0])
     rounds: list[NoiseModel | None] = (
@@ -218,9 +255,16 @@ def refine(
     )
     source = "given" if noise is not None else "estimated"
     m = int(q.shape[0])
+
+    def geometric_jacobian(yy, G):
+        geo = np.concatenate([yy[:n], np.zeros(p)])
+        J = _linearise(jnp.asarray(geo, q.dtype), arm, cands, q, aux, measured, G)[1]
+        return np.asarray(J, float)[:, :n]
+
     used = noise
     converged, steps, dps, dRs = False, np.zeros(0), np.zeros(1), np.zeros(1)
     r = J = np.zeros((0, 0))
+    P = np.eye(n + p)
     for i_round, nm in enumerate(rounds):
         if nm is None:  # the scales estimated from the first solve's residual
             _, _, dpos, tool = _metrics(jnp.asarray(y, q.dtype), arm, cands, q, aux, measured)
@@ -232,8 +276,16 @@ def refine(
             nm = NoiseModel(max(s_pos, 1e-9), max(s_rot, 1e-12))
         used = nm
         G = whitening(measured, nm)
+        if i_round == 0:
+            # The gauge: no step along the directions of the frame errors that the geometric
+            # chain does not see (the effects' features depend on the frames only weakly and
+            # must not make them "identifiable").
+            PX, _ = geometric_gauge(geometric_jacobian(y, G))
+            P = np.zeros((n + p, PX.shape[1] + p))
+            P[:n, : PX.shape[1]] = PX
+            P[n:, PX.shape[1] :] = np.eye(p)
         y, converged, (st, dp, dR), r, J = _lm(
-            y, arm, cands, q, aux, measured, G, max_iterations, rtol
+            y, P, arm, cands, q, aux, measured, G, max_iterations, rtol
         )
         if i_round == 0:
             steps, dps, dRs = st, dp, dR
@@ -242,23 +294,20 @@ def refine(
             dps = np.concatenate([dps, dp[1:]])
             dRs = np.concatenate([dRs, dR[1:]])
     assert used is not None
-    # Rank and first-order covariance of the column-scaled Jacobian (frame errors in mm and
-    # rad, effect parameters in their own units), pseudo-inverse: the unidentifiable
-    # directions get no variance.
-    norms = np.linalg.norm(J, axis=0)
-    scale = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0)
-    _, sv, Vt = np.linalg.svd(J * scale, full_matrices=False)
-    tol = sv[0] * max(J.shape) * np.finfo(float).eps if sv.size else 0.0
-    keep = sv > tol
+    # Rank and first-order covariance in the gauge (column-scaled J P: frame errors in mm and
+    # rad, effect parameters in their own units), pseudo-inverse.
+    scale, sv, Vt, keep = _scaled_svd(J, 1e-12 * max(J.shape))
     rank = int(np.sum(keep))
-    cov = scale[:, None] * ((Vt[keep].T / sv[keep] ** 2) @ Vt[keep]) * scale[None, :]
+    cov_z = scale[:, None] * ((Vt[keep].T / sv[keep] ** 2) @ Vt[keep]) * scale[None, :]
+    cov = P @ cov_z @ P.T
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))[n:]
     null = Vt[~keep]
     if null.size:  # an effect parameter along a null direction has no meaningful std
-        std = np.where(np.abs(null[:, n:]).max(axis=0) > 1e-6, np.nan, std)
-    std = np.where(norms[n:] > 0, std, np.nan)
+        std = np.where(np.abs(null[:, -p:]).max(axis=0) > 1e-6, np.nan, std) if p else std
+    std = np.where(np.linalg.norm(J[:, J.shape[1] - p :], axis=0) > 0, std, np.nan)
     X = y[:n].reshape(-1, 6)
     frames = np.asarray(lie.se3_exp(jnp.asarray(X)) @ jnp.asarray(arm.frames))
+    geo = geometric_jacobian(y, whitening(measured, used))
     return EffectRefit(
         errors=X,
         frames=frames,
@@ -276,6 +325,7 @@ def refine(
         n_params=len(y),
         noise=used,
         noise_source=source,
-        jacobian=J,
+        jacobian=J @ P.T,
+        geometric_jacobian=geo,
         cost=float(r @ r),
     )

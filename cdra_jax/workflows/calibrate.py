@@ -503,11 +503,11 @@ def _calibrate_effects(
     n = arm.n_params
     names = effect_param_names(arm)
     units = effect_param_units(arm)
-    J = fit.jacobian
+    J = fit.geometric_jacobian
     ident = report_from_jacobian(
-        J[:, :n], arm.param_names, meas.m, warnings=pose_set_warnings(arm, meas.q)
+        J, arm.param_names, meas.m, warnings=pose_set_warnings(arm, meas.q)
     )
-    cond = conditioning_from_jacobian(J[:, :n], arm.param_names)
+    cond = conditioning_from_jacobian(J, arm.param_names)
     q = jnp.asarray(meas.q)
     measured = jnp.asarray(meas.measured)
     aux = {k: jnp.asarray(v, q.dtype) for k, v in meas.aux.items()}
