@@ -475,3 +475,24 @@ def test_the_refit_model_predicts_poses_the_diagnosis_never_saw(tmp_path, capsys
     ]
     diag = json.loads(out.read_text())
     assert diag["refit_model"]["effects"][0]["effect"] == "periodic_error"
+
+
+def test_a_model_with_the_found_effect_explains_new_recordings():
+    """The refit model carries the effect as [[effects]]; diagnosing new recordings of the same
+    arm with it fits the effect with the frames (part of the base model), finds nothing more
+    and skips that candidate; the effect's values are refitted."""
+    c = find("periodic_error", "elbow", "k=2")
+    first = diagnose(base().arm, recordings(c, [0.002, 0.001]), NOISE)
+    assert (first.effect, first.located_in) == ("periodic_error", "elbow")
+    model = first.refit_arm
+    assert [(e.name, e.location, e.variant) for e in model.effects] == [
+        ("periodic_error", "elbow", "k=2")
+    ]
+    d = diagnose(model, recordings(c, [0.002, 0.001], seed=4), NOISE)
+    assert (d.effect, d.mismatch) == ("none", False), d.report
+    assert d.details["geometric_fit"]["model_effects"] == ["periodic_error@elbow"]
+    row = next(r for r in d.candidates if r.label == "periodic_error@elbow")
+    assert "k=2" not in row.variants  # the model's own form is not a candidate
+    (refitted,) = d.refit_arm.effects
+    values = [v for _, v, _ in refitted.parameters]
+    np.testing.assert_allclose(values, [0.002, 0.001], atol=3e-4)

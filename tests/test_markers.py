@@ -373,6 +373,7 @@ def test_diagnose_calibrates_rough_markers_before_it_looks_for_missing_physics(a
     d = run.diagnosis
     n_cal = sum(mk.calibrate for mk in arm.markers)
     assert d.details["geometric_fit"]["n_params"] == arm.n_params + 3 * n_cal
+    assert d.details["geometric_fit"]["n_marker_coordinates"] == 3 * n_cal
     assert f"{3 * n_cal} marker coordinates" in d.report
     assert (d.effect, d.mismatch) == ("none", False), d.report
     assert d.heldout_before.delta_p_mm < 0.2

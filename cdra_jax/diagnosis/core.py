@@ -23,10 +23,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import equinox as eqx
@@ -50,7 +50,17 @@ from ..calibration.observations import (
 )
 from ..calibration.validation import MIN_POSES
 from ..io.measurements import Measurements
-from ..physics import PROBES, VOCABULARY, Candidate, Effect, Features, candidates, with_effects
+from ..physics import (
+    PROBES,
+    VOCABULARY,
+    Candidate,
+    Effect,
+    Features,
+    candidates,
+    check_effect_data,
+    model_effects,
+    with_effects,
+)
 from . import stats
 from .model import Extended, all_features, geometric_fit, joint_refit, residual_and_jacobian
 from .report import render_report
@@ -92,7 +102,7 @@ _NOISE_RATIO_DEFAULT = (1.0, 1e-3)  # mm, rad: the first fit's weighting when no
 _POSITION, _ROTATION, _POINT = ROW_POSITION, ROW_ROTATION, ROW_POINT
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class _Rows:
     """The measured entries of the stacked residual (:func:`.observations.row_layout`).
 
@@ -166,16 +176,20 @@ def _estimate_noise(arm: Arm, q, T, floor: tuple[float, float]) -> NoiseModel:
     return NoiseModel(jnp.asarray(sp, q.dtype), jnp.asarray(sr, q.dtype))
 
 
-def _point_noise(problem: Extended, floor: tuple[float, float]) -> tuple[float, float, np.ndarray]:
+def _point_noise(
+    problem: Extended, floor: tuple[float, float], y: np.ndarray | None = None
+) -> tuple[float, float, np.ndarray]:
     """``(position mm, rotation rad, points (P,) mm)`` estimated by variance components on the
-    geometric fit's residual in physical units (every standard deviation 1): one group for the
-    full poses' positions, one for their rotations, one per point (NaN for a group without
-    measurements)."""
+    base model's residual at ``y`` (default: zero) in physical units (every standard deviation
+    1): one group for the full poses' positions, one for their rotations, one per point (NaN
+    for a group without measurements)."""
     dtype = problem.q.dtype
     P = problem.obs.n_points
     one = _sigmas(problem.obs, 1.0, 1.0, 1.0, dtype)
     unit = eqx.tree_at(lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt), problem, one)
-    e, D = residual_and_jacobian(jnp.zeros(unit.n_geometric + unit.features.n_params, dtype), unit)
+    if y is None:
+        y = np.zeros(unit.n_frames_markers + unit.features.n_params)
+    e, D = residual_and_jacobian(jnp.asarray(y, dtype), unit)
     rows = _rows(unit)
     e = np.asarray(e, float)[rows.take]
     D = np.asarray(D, float)[rows.take, : unit.n_geometric]
@@ -442,12 +456,17 @@ def diagnose(
     # below this a residual is rounding (exact data), not measurement noise
     floor_phys = stats.rounding_floor(_measured_positions(meas))
 
-    # 1. geometric fit
-    base, fit_info = _geometric_start(arm, meas, q, aux, noise, floor_phys)
+    # the model's own [[effects]] are part of the base model: fitted with the frames
+    own, theta_own = model_effects(arm, meas.source)
+    check_effect_data(arm, aux.keys(), str(meas.source))
+
+    # 1. geometric fit (frames and markers; the model's effects joined below)
+    base, fit_info = _geometric_start(arm.with_effects(()), meas, q, aux, noise, floor_phys)
     fit_arm = base.arm
 
-    # 2. features of every evaluable candidate and probe, one Jacobian for all
-    table = candidates(arm, aux.keys(), effects)
+    # 2. features of the model's effects, then of every evaluable candidate and probe, one
+    # Jacobian for all
+    table = _not_in_model(candidates(arm, aux.keys(), effects), own)
     live = [c for c, why in table if why is None]
     tested = [c for c in live if not c.effect.refinement]
     table = [(c, why) for c, why in table if not c.effect.refinement]
@@ -456,12 +475,28 @@ def diagnose(
     sizes = [len(c.parameters(arm)) for c in everything]
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     cols = {c: slice(int(offsets[i]), int(offsets[i + 1])) for i, c in enumerate(everything)}
-    F_all = all_features(everything, _gravity_in_fit_frame(fit_arm, arm), q, aux)
-    problem = eqx.tree_at(lambda p: p.features, base, F_all)
-    layout = _rows(problem)
+    F_all = all_features(own + everything, _gravity_in_fit_frame(fit_arm, arm), q, aux)
+    problem = dataclasses.replace(base, features=F_all, n_model_effects=int(theta_own.size))
     n_geo = problem.n_geometric
-    y0 = jnp.zeros(n_geo + F_all.n_params, q.dtype)
-    r_j, J_j = residual_and_jacobian(y0, problem)
+    y_base = np.zeros(problem.n_frames_markers + F_all.n_params)
+    if own:
+        y_base[problem.n_frames_markers : n_geo] = theta_own
+        y_base = joint_refit(y_base, np.arange(n_geo), problem)[0]
+        fit_info["model_effects"] = [c.label for c in own]
+        if noise is None:  # the noise of the data, not of the effects the geometric fit missed
+            sp, sr, spt = _point_noise(problem, floor_phys, y_base)
+            est = (
+                sp if math.isfinite(sp) else 1.0,
+                sr if math.isfinite(sr) else 1.0,
+                np.where(np.isfinite(spt), spt, 1.0),
+            )
+            problem = eqx.tree_at(
+                lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt),
+                problem,
+                _sigmas(problem.obs, *est, q.dtype),
+            )
+    layout = _rows(problem)
+    r_j, J_j = residual_and_jacobian(jnp.asarray(y_base, q.dtype), problem)
     r = np.asarray(r_j, float)[layout.take]
     Jfull = np.asarray(J_j, float)[layout.take]
     N = r.size
@@ -561,7 +596,7 @@ def diagnose(
     refit_info: dict = {}
     best: Candidate | None = None
     ho1: stats.HeldOut | None = None
-    y_model = np.zeros(n_geo + F_all.n_params)  # the written model: the geometric fit ...
+    y_model = y_base  # the written model: the base model's fit ...
     model_forms: list[Candidate] = []  # ... plus the selected effect's forms
     significant = [
         chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["merit"] or -1.0) > 0
@@ -571,7 +606,7 @@ def diagnose(
         same = [c for c in live if (c.name, c.location) == (best.name, best.location)]
         forms, gains = _refinements(best, same, cols, r, D, J, fold)
         best = forms[0]
-        args = (problem, layout, arm, r, D, J, fold, given)
+        args = (problem, layout, arm, r, D, J, fold, given, y_base)
         refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(forms, cols, *args)
         # further forms, judged on the model linearised at the refit (a large effect moves
         # the solution far from the geometric fit, where the first linearisation was made)
@@ -682,7 +717,13 @@ def diagnose(
             "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": _num(floor[1])},
             "rounding_floor": {"position_mm": floor_phys[0], "rotation_rad": floor_phys[1]},
             "noise_suggested": _suggested_noise(r, df_resid, layout, meas.point_names),
-            "geometric_fit": {**fit_info, "rank": int(rank), "n_params": n_geo},
+            "geometric_fit": {
+                **fit_info,
+                "rank": int(rank),
+                "n_params": n_geo,
+                "n_marker_coordinates": 3 * len(problem.calibrated),
+                "n_model_effect_params": problem.n_model_effects,
+            },
             "refit": refit_info or None,
             "probes": probe_rows,
             "best_candidate": None if best is None else best.label,
@@ -694,7 +735,9 @@ def diagnose(
         "before": _per_row(ho0.residual * layout.scale, layout, m),
         "after": _per_row((ho1 if ho1 is not None else ho0).residual * layout.scale, layout, m),
     }
-    diag.refit_arm = _refit_model(problem, y_model, model_forms, cols, arm, meas.point_names)
+    diag.refit_arm = _refit_model(
+        problem, y_model, list(own) + model_forms, cols, arm, meas.point_names
+    )
     diag.report = render_report(diag, best)
     return diag
 
@@ -702,21 +745,22 @@ def diagnose(
 def _refit_model(
     problem: Extended,
     y: np.ndarray,
-    forms: Sequence[Candidate],
+    effects: Sequence[Candidate],
     cols: dict,
     nominal: Arm,
     point_names: Sequence[str],
 ) -> Arm:
     """The model the diagnosis ends with, in the model contract: the frames (and calibrated
-    marker positions) at ``y``, the effect ``forms`` with their parameters from ``y`` as
-    ``[[effects]]``, gravity in the fitted world frame (:func:`_gravity_in_fit_frame`)."""
-    n = problem.n_geometric
+    marker positions) at ``y``, the ``effects`` (the model's own, then the selected effect's
+    forms) with their parameters from ``y`` as ``[[effects]]``, gravity in the fitted world
+    frame (:func:`_gravity_in_fit_frame`)."""
+    n = problem.n_frames_markers
     frames, xyz = apply_parameters(
         jnp.asarray(y[:n]), jnp.asarray(problem.arm.frames), problem.xyz, problem.calibrated
     )
     out = _gravity_in_fit_frame(problem.arm.with_frames(frames), nominal)
-    xyz = np.asarray(xyz, float)
-    placed = {point_names[j]: xyz[j] for j in problem.calibrated}
+    at = np.asarray(xyz, float)
+    placed = {point_names[j]: at[j] for j in problem.calibrated}
     if placed:
         out = out.with_markers(
             [
@@ -724,10 +768,26 @@ def _refit_model(
                 for mk in out.markers
             ]
         )
-    if forms:
-        theta = np.concatenate([y[n + cols[c].start : n + cols[c].stop] for c in forms])
-        out = with_effects(out, forms, theta)
+    if effects:
+        own = y[n : problem.n_geometric]
+        n_geo = problem.n_geometric
+        found = [y[n_geo + cols[c].start : n_geo + cols[c].stop] for c in effects if c in cols]
+        out = with_effects(out, effects, np.concatenate([own, *found]))
     return out
+
+
+def _not_in_model(
+    table: list[tuple[Candidate, str | None]], own: Sequence[Candidate]
+) -> list[tuple[Candidate, str | None]]:
+    """The candidate table with the model's own effects (same effect, location and variant)
+    marked skipped: they are part of the base model, fitted with the frames."""
+    mine = {(c.name, c.location, c.variant) for c in own}
+    return [
+        (c, "in the model already (its [[effects]], fitted with the frames)")
+        if (c.name, c.location, c.variant) in mine
+        else (c, why)
+        for c, why in table
+    ]
 
 
 def _xyz(v: np.ndarray) -> tuple[float, float, float]:
@@ -807,7 +867,7 @@ def _refinements(best, same, cols, r, D, J, fold):
     return forms, gains
 
 
-def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_start=None):
+def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_base, y_start=None):
     """Joint LM refit of the frame errors and the parameters of ``forms`` (the selected
     candidate first, then the forms added to it), from ``y_start`` (all entries of ``y``) or
     from the linearised fit at the geometric solution. Returns ``(info, parameters, heldout,
@@ -819,8 +879,8 @@ def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_start=None):
     free = np.concatenate([np.arange(n_geo), n_geo + sel])
     if y_start is None:
         y_lin, _ = _linear_fit(r, np.hstack([D, J[:, sel]]), 1.0)
-        y0 = np.zeros(n_geo + J.shape[1])
-        y0[free] = y_lin
+        y0 = np.array(y_base, float)
+        y0[free] += y_lin
     else:
         y0 = np.array(y_start, float)
     y_all, ok, steps = joint_refit(y0, free, problem)
@@ -855,7 +915,8 @@ def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_start=None):
         "dof": int(dof),
         "interval_inflation": float(np.sqrt(inflate)),
         "frame_errors_change": {
-            name: [float(v) for v in y[6 * j : 6 * j + 6]] for j, name in enumerate(arm.frame_names)
+            name: [float(v) for v in (y_all - y_base)[6 * j : 6 * j + 6]]
+            for j, name in enumerate(arm.frame_names)
         },
     }
     return info, params, ho1, p_after, np.asarray(y_all, float), r1, J1_all

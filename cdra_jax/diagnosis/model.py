@@ -4,7 +4,9 @@ the geometric fit and the joint (geometric + physical) Levenberg-Marquardt refit
 The parameters of the extended model are ``y = (X, dx, theta)``: the error twists
 ``X (6 (K+1),)`` left-multiplied on the fixed frames of a reference model (Eqs. 11-14), the
 corrections ``dx (3 c,)`` of the ``c`` calibrated marker positions (mm, tool frame) and the
-physical parameters ``theta (p,)`` of the feature columns (:class:`cdra_jax.physics.Features`).
+physical parameters ``theta (p,)`` of the feature columns (:class:`cdra_jax.physics.Features`):
+first those of the model's own ``[[effects]]`` (part of the base model, fitted with the frames),
+then those of the candidates.
 The residual is the stacked whitened residual of :mod:`cdra_jax.calibration.observations`: the
 Eq. 7 twist of every full pose, then every measured point (``6 m + 3 m P`` entries, exact zeros
 where nothing was measured).
@@ -44,7 +46,8 @@ class Extended(eqx.Module):
         sigma_pt: ``(m, P)`` those of the points (mm), ``inf`` where not seen.
         xyz: ``(P, 3)`` reference tool-frame positions of the points (mm; ``0``: the origin).
         calibrated: indices of the points whose position is a parameter (static).
-        features: the candidates' feature columns.
+        features: the feature columns: the model's own effects, then the candidates.
+        n_model_effects: how many leading feature columns are the model's own effects (static).
     """
 
     arm: Arm
@@ -56,16 +59,23 @@ class Extended(eqx.Module):
     xyz: Array
     features: Features
     calibrated: tuple[int, ...] = eqx.field(static=True, default=())
+    n_model_effects: int = eqx.field(static=True, default=0)
+
+    @property
+    def n_frames_markers(self) -> int:
+        """Entries of ``(X, dx)``: ``6 (K+1) + 3 c``."""
+        return self.arm.n_params + 3 * len(self.calibrated)
 
     @property
     def n_geometric(self) -> int:
-        """Entries of ``(X, dx)``: ``6 (K+1) + 3 c``."""
-        return self.arm.n_params + 3 * len(self.calibrated)
+        """Entries of the base model (everything fitted before any candidate): ``(X, dx)`` and
+        the parameters of the model's own effects."""
+        return self.n_frames_markers + self.n_model_effects
 
 
 def whitened_residual(y: Array, problem: Extended) -> Array:
     """``(6 m + 3 m P,)`` whitened residual of the extended model at ``y`` (module docstring)."""
-    n = problem.n_geometric
+    n = problem.n_frames_markers
     frames, xyz = apply_parameters(
         y[:n], jnp.asarray(problem.arm.frames, y.dtype), problem.xyz, problem.calibrated
     )

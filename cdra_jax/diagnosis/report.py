@@ -75,10 +75,12 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
     t = d.tests
     fit = det.get("geometric_fit") or {}
     n_frame = det.get("n_frame_params", 0)
-    n_marker = int(fit.get("n_params", n_frame)) - int(n_frame)
+    n_marker = int(fit.get("n_marker_coordinates", 0))
     params = f"{n_frame} frame-error parameters" + (
         f" and {n_marker} marker coordinates" if n_marker > 0 else ""
     )
+    if fit.get("model_effects"):
+        params += ", with the model's effects " + ", ".join(fit["model_effects"])
     lines = [
         f"Geometric calibration ({params}, {fit.get('solver', 'weighted Gauss-Newton')}) of "
         f"{det['n_poses']} poses, {det['folds']}-fold cross-validated: held-out "
