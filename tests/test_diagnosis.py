@@ -496,3 +496,41 @@ def test_a_model_with_the_found_effect_explains_new_recordings():
     (refitted,) = d.refit_arm.effects
     values = [v for _, v, _ in refitted.parameters]
     np.testing.assert_allclose(values, [0.002, 0.001], atol=3e-4)
+
+
+def test_a_physically_impossible_estimate_is_never_reported():
+    """A shoulder that deflects against gravity (a negative compliance): the best candidate fits
+    it with an impossible sign, so no effect is named; the report says which and why."""
+    c = find("joint_compliance", "shoulder")
+    d = diagnose(base().arm, recordings(c, [-4e-7]), NOISE)
+    assert d.mismatch and d.effect == "unattributed", d.report
+    assert d.parameters == {}
+    rejected = d.details["refit"]["rejected"]
+    assert rejected["candidate"] == "joint_compliance@shoulder"
+    assert "physically implausible" in rejected["reason"] and "not reported" in d.report
+    assert not d.refit_arm.effects  # the written model keeps only the geometric fit
+
+
+def test_a_candidate_that_fails_numerically_is_marked_failed_and_the_diagnosis_goes_on():
+    from cdra_jax.physics import Effect, Features, ParameterSpec
+
+    class Broken(Effect):
+        name = "broken"
+        summary = "a candidate whose features are not finite"
+
+        def locations(self, arm):
+            return ("elbow",)
+
+        def parameters(self, arm, location):
+            return (ParameterSpec("x", "1", -1.0, 1.0),)
+
+        def features(self, arm, q, aux, location):
+            f = Features.zeros(arm, q.shape[0], 1, q.dtype)
+            return Features(f.state.at[:, 0, 0].set(jnp.nan), f.module_twist, f.frame_deflection)
+
+    c = find("cable_scale", "elbow", "from_home")
+    d = diagnose(base().arm, recordings(c, [0.02]), NOISE, effects=(c.effect, Broken()))
+    assert (d.effect, d.located_in) == ("cable_scale", "elbow"), d.report
+    row = next(r for r in d.candidates if r.effect == "broken")
+    assert row.skipped == "failed: its features are not finite on these data"
+    assert "broken@elbow (failed" in d.report

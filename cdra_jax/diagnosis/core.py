@@ -475,7 +475,15 @@ def diagnose(
     sizes = [len(c.parameters(arm)) for c in everything]
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     cols = {c: slice(int(offsets[i]), int(offsets[i + 1])) for i, c in enumerate(everything)}
-    F_all = all_features(own + everything, _gravity_in_fit_frame(fit_arm, arm), q, aux)
+    F_all, finite = _finite_columns(
+        all_features(own + everything, _gravity_in_fit_frame(fit_arm, arm), q, aux)
+    )
+    if not np.all(finite[: theta_own.size]):
+        raise ValueError(
+            f"{meas.source}: the model's [[effects]] are not finite on these data (check the "
+            "auxiliary columns and the model's masses)"
+        )
+    finite = finite[theta_own.size :]
     problem = dataclasses.replace(base, features=F_all, n_model_effects=int(theta_own.size))
     n_geo = problem.n_geometric
     y_base = np.zeros(problem.n_frames_markers + F_all.n_params)
@@ -519,20 +527,18 @@ def diagnose(
 
     # 4. candidate table: one row per (effect, location); its variants are alternatives
     evals: dict[Candidate, dict] = {}
+    failed: dict[Candidate, str] = {}
     for c in tested:
-        Jc = J[:, cols[c]]
-        proj = stats.project(Jc, UD)
-        Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid, floor2)
-        A = np.hstack([D, Jc])
-        gain = merit = None
-        if proj.df:
-            ho = stats.heldout(r, A, fold)
-            gain = ho.loglik - ho0.loglik
-            # what selection ranks: the held-out log-likelihood gain, but no more than half the
-            # drop of the plain held-out sum of squares (a flexible candidate that predicts
-            # with a wide covariance gains likelihood without predicting better)
-            merit = min(gain, 0.5 * (ho0.sum_of_squares - ho.sum_of_squares))
-        evals[c] = {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A, "merit": merit}
+        if not np.all(finite[cols[c]]):
+            failed[c] = "failed: its features are not finite on these data"
+            continue
+        try:
+            evals[c] = _evaluate(c, J[:, cols[c]], r, D, UD, df_resid, floor2, fold, ho0)
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError) as err:
+            # a numerical failure of one candidate (non-finite features, a singular or
+            # indefinite matrix): that candidate is marked failed, the diagnosis goes on
+            failed[c] = f"failed: {err}"
+    table = [(c, failed.get(c, why)) for c, why in table]
     by_place: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
     for c, why in table:
         by_place.setdefault((c.name, c.location), []).append((c, why))
@@ -635,7 +641,20 @@ def diagnose(
             ),
         )
         refit_info["explained_fraction"] = float(explained)
-        if given and p_after is not None and p_after < alpha and explained < EXPLAINED_MIN:
+        implausible = [
+            f"{k} = {v.value:.3g} {v.unit} (physical range {v.range_low:g} to {v.range_high:g})"
+            for k, v in parameters.items()
+            if not v.plausible
+        ]
+        if implausible:
+            # never report an effect whose estimate is physically impossible (a negative
+            # compliance): it stands in for something else
+            refit_info["rejected"] = {
+                "candidate": best.label,
+                "reason": "physically implausible estimate: " + "; ".join(implausible),
+            }
+            effect_name = "unattributed"
+        elif given and p_after is not None and p_after < alpha and explained < EXPLAINED_MIN:
             effect_name = "unattributed"
         else:
             y_model, model_forms = y1, list(forms)
@@ -792,6 +811,41 @@ def _not_in_model(
 
 def _xyz(v: np.ndarray) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _finite_columns(F: Features) -> tuple[Features, np.ndarray]:
+    """``F`` with every parameter column that has a non-finite entry set to zero (it would
+    poison the residual: ``nan * 0`` is ``nan``), and which columns ``(p,)`` were finite."""
+    parts = (F.state, F.module_twist, F.frame_deflection)
+    finite = np.ones(F.n_params, bool)
+    for a in parts:
+        a = np.asarray(a)
+        finite &= np.all(np.isfinite(a.reshape(-1, a.shape[-1])), axis=0)
+    if finite.all():
+        return F, finite
+    keep = jnp.asarray(finite)
+    clean = [jnp.where(keep, jnp.nan_to_num(a), 0.0) for a in parts]
+    return Features(state=clean[0], module_twist=clean[1], frame_deflection=clean[2]), finite
+
+
+def _evaluate(c, Jc, r, D, UD, df_resid, floor2, fold, ho0) -> dict:
+    """One candidate's test on the linearised model: the projection of its columns ``Jc`` off
+    the frames' (absorbed fraction), its F test, and its held-out log-likelihood gain and
+    selection merit over the geometric fit."""
+    if not np.all(np.isfinite(Jc)):
+        raise ValueError("its features are not finite on these data")
+    proj = stats.project(Jc, UD)
+    Fv, p, df1, _ = stats.f_test(r, proj.basis, df_resid, floor2)
+    A = np.hstack([D, Jc])
+    gain = merit = None
+    if proj.df:
+        ho = stats.heldout(r, A, fold)
+        gain = ho.loglik - ho0.loglik
+        # what selection ranks: the held-out log-likelihood gain, but no more than half the
+        # drop of the plain held-out sum of squares (a flexible candidate that predicts with a
+        # wide covariance gains likelihood without predicting better)
+        merit = min(gain, 0.5 * (ho0.sum_of_squares - ho.sum_of_squares))
+    return {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A, "merit": merit}
 
 
 def _explained(excess_before: float, excess_after: float) -> float:

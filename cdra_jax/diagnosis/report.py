@@ -121,7 +121,10 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         lines.append("No missing physics detected: the geometric model explains the recordings.")
     elif d.effect == "unattributed":
         msg = "The misfit is not explained by any effect of the vocabulary"
-        if best is not None and det.get("refit"):
+        rejected = (det.get("refit") or {}).get("rejected")
+        if best is not None and rejected:
+            msg += f" (the best candidate, {best.label}, is not reported: its {rejected['reason']})"
+        elif best is not None and det.get("refit"):
             msg += (
                 f" (the best candidate, {best.label}, removes only "
                 f"{100 * det['refit']['explained_fraction']:.0f} % of the excess held-out misfit)"
