@@ -7,8 +7,12 @@ measurements unless ``--noise`` is given. All problems are generated once with
 
 (a) ``paper``: ``cdra_jax.jit(jax.vmap(calibrate_paper(..., throw=False)))`` over the batch
     (``jax.jit`` with the package's compile options, :mod:`cdra_jax.compilation`;
-    ``--xla-defaults`` adds rows compiled with plain ``jax.jit``);
+    ``--xla-defaults`` adds rows compiled with plain ``jax.jit``); ``weighted``: the same with
+    the noise model of ``--noise-pos-mm`` / ``--noise-rot-rad`` (whitened residual);
 (b) ``lm``: the same with :func:`cdra_jax.calibrate_lm` (optimistix Levenberg-Marquardt);
+    ``--lean`` adds rows ``*_lean`` with the JAX solvers as a Monte-Carlo sweep runs them:
+    ``singular_values=False`` (no final QR + SVD; :mod:`cdra_jax.sweeps` does so) and, for
+    paper and weighted, ``predictive_stop=True`` (one step fewer, answers within 1e-8 mm);
 (c) ``numpy``: a plain NumPy loop over trials (``benchmarks/baselines.py``: Rodrigues exp,
     Eq. 27 log, Eq. 25 adjoint, per-pose stacking, ``np.linalg.lstsq``), the reference of
     the ratios; ``numpy_vec`` is the same algorithm batched over the poses of a trial;
@@ -58,7 +62,15 @@ from cdra_jax.compilation import jit as package_jit  # noqa: E402
 from cdra_jax.parallel import split_over_devices, use_cpu_devices  # noqa: E402
 from cdra_jax.simulation import simulate_trial  # noqa: E402
 
-SOLVERS = ("paper", "lm", "numpy", "numpy_vec", "scipy")
+SOLVERS = ("paper", "weighted", "lm", "numpy", "numpy_vec", "scipy")
+_JAX_SOLVERS = ("paper", "weighted", "lm")
+
+
+def _base(name: str) -> str:
+    """The solver of a result row (``paper_lean_x2`` -> ``paper``, ``numpy_vec`` -> itself)."""
+    return max((s for s in SOLVERS if name == s or name.startswith(s + "_")), key=len)
+
+
 _N_CHUNKS = 5
 _GEN_BLOCK = 100_000
 
@@ -230,15 +242,34 @@ def run(args) -> dict:
         flush=True,
     )
     devices = jax.devices()
-    runs = [(name, fn, 1) for name, fn in (("paper", calibrate_paper), ("lm", calibrate_lm))]
+    weights = NoiseModel(args.noise_pos_mm, args.noise_rot_rad)
+    runs: list[tuple[str, Callable, int, dict]] = [
+        ("paper", calibrate_paper, 1, {}),
+        ("weighted", calibrate_paper, 1, {"noise": weights}),
+        ("lm", calibrate_lm, 1, {}),
+    ]
+    if args.lean:
+        lean = {"singular_values": False}
+        runs += [
+            ("paper_lean", calibrate_paper, 1, {**lean, "predictive_stop": True}),
+            (
+                "weighted_lean",
+                calibrate_paper,
+                1,
+                {**lean, "predictive_stop": True, "noise": weights},
+            ),
+            ("lm_lean", calibrate_lm, 1, lean),
+        ]
     if len(devices) > 1:
-        runs += [(f"{name}_x{len(devices)}", fn, len(devices)) for name, fn, _ in list(runs)]
+        runs += [
+            (f"{name}_x{len(devices)}", fn, len(devices), kw) for name, fn, _, kw in list(runs)
+        ]
     if args.xla_defaults:
-        runs += [(f"{name}_xla_defaults", fn, 0) for name, fn, n in list(runs) if n == 1]
-    for name, fn, n_dev in runs:
-        if name.split("_x")[0] not in args.solvers:
+        runs += [(f"{name}_xla_defaults", fn, 0, kw) for name, fn, n, kw in list(runs) if n == 1]
+    for name, fn, n_dev, kw in runs:
+        if _base(name) not in args.solvers:
             continue
-        solve = lambda qq, TT, fn=fn: fn(arm, qq, TT, throw=False)  # noqa: E731
+        solve = lambda qq, TT, fn=fn, kw=kw: fn(arm, qq, TT, throw=False, **kw)  # noqa: E731
         if n_dev == 1:
             r = time_jax(solve, q, T, args.repeats)
         elif n_dev == 0:  # one device, plain jax.jit: XLA's default compile options
@@ -294,19 +325,21 @@ def print_table(res: dict, n_base: int, n_trials: int) -> None:
     ref = res["numpy"]["trials_per_s"] if "numpy" in res else float("nan")
     w = max([10] + [len(k) for k in res])
     head = (
-        f"{'solver':{w}s} {'trials':>7s} {'trials/s':>10s} {'vs numpy':>9s} {'compile s':>10s} "
+        f"{'solver':{w}s} {'trials':>7s} {'us/trial':>9s} {'trials/s':>10s} {'vs numpy':>9s} "
+        f"{'compile s':>10s} "
         f"{'first s':>8s} {'conv':>5s} {'iters':>6s} {'d(base,tool) vs paper':>22s} "
         f"{'vs preset':>10s}"
     )
     print(head)
     print("-" * len(head))
-    for name in sorted(res, key=lambda k: (SOLVERS.index(k.split("_x")[0]), k)):
+    for name in sorted(res, key=lambda k: (SOLVERS.index(_base(k)), k)):
         r = res[name]
-        n = n_trials if name.split("_x")[0] in ("paper", "lm") else n_base
+        n = n_trials if _base(name) in _JAX_SOLVERS else n_base
         comp = f"{r['compile_s']:10.2f}" if "compile_s" in r else f"{'-':>10s}"
         first = f"{r['first_call_s']:8.2f}" if "first_call_s" in r else f"{'-':>8s}"
         print(
-            f"{name:{w}s} {n:7d} {r['trials_per_s']:10.1f} {r['trials_per_s'] / ref:9.1f} "
+            f"{name:{w}s} {n:7d} {1e6 / r['trials_per_s']:9.1f} {r['trials_per_s']:10.1f} "
+            f"{r['trials_per_s'] / ref:9.1f} "
             f"{comp} {first} {r['converged']:5.2f} {r['iterations_mean']:6.2f} "
             f"{r['maxdiff_vs_paper']:22.2e} {r['maxdiff_vs_preset']:10.2e}"
         )
@@ -325,6 +358,7 @@ def summary_json(res: dict, args, n_base: int) -> dict:
     ref = res.get("numpy", {}).get("trials_per_s", float("nan"))
     for name, r in res.items():
         out[f"trials_per_s_{name}"] = r["trials_per_s"]
+        out[f"us_per_trial_{name}"] = 1e6 / r["trials_per_s"]
         out[f"maxdiff_vs_paper_{name}"] = r["maxdiff_vs_paper"]
         out[f"maxdiff_vs_preset_{name}"] = r["maxdiff_vs_preset"]
         out[f"converged_{name}"] = r["converged"]
@@ -445,6 +479,12 @@ def main(argv: list[str] | None = None) -> dict:
         help="also time the JAX solvers compiled with plain jax.jit, i.e. XLA's default options "
         "(rows paper_xla_defaults, lm_xla_defaults), side by side with the package's "
         "cdra_jax.compilation.jit",
+    )
+    p.add_argument(
+        "--lean",
+        action="store_true",
+        help="also time the JAX solvers as a sweep runs them (rows *_lean): singular_values="
+        "False and, for paper and weighted, predictive_stop=True",
     )
     p.add_argument("--scaling", action="store_true", help="trials/s against N and m instead")
     p.add_argument(
