@@ -223,10 +223,27 @@ def test_calibrate_refines_the_effects_with_the_frames(truth, calibrated, tmp_pa
     assert v.to_dict()["nominal"]["position_error_mm"]["mean"] > 0.1
 
 
-def test_calibrate_with_effects_needs_full_poses(truth):
-    pts = simulate(truth, 12, seed=1, points=True, errors="zero").measurements
-    with pytest.raises(ValueError, match=r"full measured tool poses"):
-        calibrate(truth, pts)
+def test_calibrate_with_effects_from_points(truth):
+    """A laser tracker's points (the tool origin, some rows occluded) refine the effects too;
+    the tool frame's rotation, which points at the origin do not see, stays in the gauge."""
+    run = simulate(truth, 40, seed=4, d_w=0.01, points=True)
+    start = truth.with_effects([e.with_values([0.0] * len(e.parameters)) for e in truth.effects])
+    cal = calibrate(start, run.measurements)
+    assert cal.converged and cal.trusted
+    for want, have in zip(truth.effects, cal.calibrated_arm.effects, strict=True):
+        np.testing.assert_allclose(have.values, want.values, rtol=1e-6, atol=1e-12)
+    assert cal.to_dict()["noise"]["points_mm"] is not None
+    v = validate(cal.calibrated_arm, run.measurements)
+    assert v.to_dict()["position_error_mm"]["max"] < 1e-6
+
+
+def test_calibrate_with_effects_refuses_rough_markers_and_robust_losses(truth):
+    from cdra_jax.arm import Marker
+
+    marked = truth.with_markers([Marker("m1", (0.0, 40.0, 20.0), calibrate=True)])
+    pts = simulate(marked, 12, seed=1, points=True, errors="zero").measurements
+    with pytest.raises(ValueError, match=r"markers m1 have calibrate = true"):
+        calibrate(marked, pts)
     with pytest.raises(ValueError, match=r"robust losses"):
         calibrate(truth, simulate(truth, 12, seed=1).measurements, loss="huber")
 

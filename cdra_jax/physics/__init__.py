@@ -45,8 +45,11 @@ from .model import with_effect_values as with_effect_values
 from .model import with_effects as with_effects
 from .probes import PROBES as PROBES
 from .refit import EffectRefit as EffectRefit
+from .refit import RefitData as RefitData
+from .refit import data_residual as data_residual
 from .refit import extended_residual as extended_residual
 from .refit import extended_tool_pose as extended_tool_pose
+from .refit import prediction_error_table as prediction_error_table
 from .refit import refine as refine
 
 

@@ -45,7 +45,7 @@ from ..calibration import (
     make_observations,
     to_nominal_gauge,
 )
-from ..calibration.model import pose_errors, residual_twist, whitening
+from ..calibration.observations import marker_table, row_means
 from ..calibration.registration import initial_guess
 from ..calibration.robust import OUTLIER_THRESHOLD
 from ..compilation import cached_filter_jit
@@ -71,10 +71,12 @@ from ..io.model import effects_from_list, effects_to_list
 from ..io.results import RESULT_FORMAT, RESULT_FORMAT_VERSION, package_version
 from ..physics import (
     check_effect_data,
+    data_residual,
     effect_param_names,
     effect_param_units,
     extended_tool_pose,
     model_effects,
+    prediction_error_table,
     refine,
 )
 from ..plots import calibration_residuals_figure
@@ -466,13 +468,6 @@ def _calibrate_effects(
 ) -> CalibrationRun:
     """Calibrate a model with ``[[effects]]``: frames and effect parameters jointly."""
     labels = ", ".join(e.label for e in arm.effects)
-    if meas.measured is None:
-        raise ValueError(
-            f"{data_label}: the model's [[effects]] ({labels}) are refined with the frames from "
-            "full measured tool poses (position and orientation); these data measure points "
-            "only. Measure full poses, or calibrate the model without its [[effects]] (the "
-            "effects then stay as given in the model file)"
-        )
     if solver not in (None, "auto", "lm"):
         raise ValueError(
             f"solver {solver}: a model with [[effects]] ({labels}) is calibrated by "
@@ -484,19 +479,33 @@ def _calibrate_effects(
             f"a model with [[effects]] ({labels}) is calibrated by least squares; robust losses "
             "and reject_outliers are not available with effects"
         )
+    xyz, rough = marker_table(arm, meas.point_names)
+    if rough:
+        raise ValueError(
+            f"the markers {', '.join(meas.point_names[j] for j in rough)} have calibrate = true: "
+            f"with [[effects]] ({labels}) the markers' positions are taken as known. Calibrate "
+            "them first with the model without its [[effects]] (calibrate --model-out writes "
+            "their positions), then refine the effects with that model's markers"
+        )
     check_effect_data(arm, meas.aux, data_label)
     # Start: the base frame registered to the measuring device's frame where that lowers the
     # position errors (data in a tracker's own frame), as the auto solver starts.
-    obs = make_observations(arm, meas.q, meas.measured, None)
-    start = initial_guess(np.asarray(arm.frames), np.zeros((0, 3)), obs, ())
+    obs = make_observations(arm, meas.q, meas.full_poses, meas.points)
+    start = initial_guess(np.asarray(arm.frames), xyz, obs, ())
     placed = arm.with_frames(jnp.asarray(start.frames)) if start.registered else arm
-    plausibility = list(check_plausibility(placed, meas))
+    plausibility = list(
+        check_plausibility(arm, meas if meas.measured is None else _states_only(meas))
+    )
+    if meas.measured is not None:
+        plausibility = list(check_plausibility(placed, meas))
     fit = refine(
         arm,
         meas.q,
-        meas.measured,
+        meas.full_poses,
         meas.aux,
         noise,
+        points=meas.points,
+        point_xyz=xyz,
         errors0=np.asarray(error_twists(jnp.asarray(start.frames), arm.frames)).reshape(-1),
         max_iterations=50 if max_iterations is None else max_iterations,
     )
@@ -509,20 +518,24 @@ def _calibrate_effects(
     )
     cond = conditioning_from_jacobian(J, arm.param_names)
     q = jnp.asarray(meas.q)
-    measured = jnp.asarray(meas.measured)
     aux = {k: jnp.asarray(v, q.dtype) for k, v in meas.aux.items()}
-    y0 = np.concatenate([np.zeros(n), fit.theta_start])
-    y1 = np.concatenate([fit.errors.reshape(-1), fit.theta])
+    y0 = jnp.asarray(np.concatenate([np.zeros(n), fit.theta_start]))
+    y1 = jnp.asarray(np.concatenate([fit.errors.reshape(-1), fit.theta]))
     cands = fit.candidates
-    tool0 = extended_tool_pose(jnp.asarray(y0), arm, cands, q, aux)
-    tool1 = extended_tool_pose(jnp.asarray(y1), arm, cands, q, aux)
-    p0, r0 = (np.asarray(a, float) for a in pose_errors(measured, tool0))
-    p1, r1 = (np.asarray(a, float) for a in pose_errors(measured, tool1))
-    # Standardised residual per pose: RMS of its six whitened entries at the noise scales.
-    G = whitening(measured, fit.noise)
-    e = np.asarray(jnp.einsum("mij,mj->mi", G, residual_twist(measured, tool1)), float)
-    z = np.sqrt(np.mean(e * e, axis=1) * 6 * meas.m / max(6 * meas.m - fit.rank, 1))
+    pos0, r0 = prediction_error_table(extended_tool_pose(y0, arm, cands, q, aux), fit.data)
+    pos1, r1 = prediction_error_table(extended_tool_pose(y1, arm, cands, q, aux), fit.data)
+    p0, p1 = row_means(pos0), row_means(pos1)
+    # Standardised residual per row: RMS of its measured whitened entries at the noise scales.
+    scales = jnp.asarray([fit.noise.position_mm, fit.noise.rotation_rad, fit.point_noise_mm])
+    res = np.asarray(data_residual(y1, arm, cands, q, aux, fit.data, scales), float)
+    m, n_pts = meas.m, len(meas.point_names)
+    sq = (res[: 6 * m].reshape(m, 6) ** 2).sum(1) + (res[6 * m :].reshape(m, -1) ** 2).sum(1)
+    counts = 6 * np.asarray(fit.data.pose_mask) + 3 * np.asarray(fit.data.seen).sum(1)
+    n_rows = max(int(counts.sum()), 1)
+    z = np.sqrt(sq / np.maximum(counts, 1) * n_rows / max(n_rows - fit.rank, 1))
     flagged = z > OUTLIER_THRESHOLD
+    has_poses = bool(np.asarray(fit.data.pose_mask).any())
+    del n_pts
     nxyz, nrv = (np.asarray(a, float) for a in lie.to_xyz_rotvec(jnp.asarray(arm.frames)))
     cxyz, crv = (np.asarray(a, float) for a in lie.to_xyz_rotvec(jnp.asarray(fit.frames)))
     frames = {
@@ -582,8 +595,9 @@ def _calibrate_effects(
         if fit.converged
         else "the calibration did not converge within max_iterations; raise it",
         "noise": {
-            "position_mm": float(fit.noise.position_mm),
-            "rotation_rad": float(fit.noise.rotation_rad),
+            "position_mm": float(fit.noise.position_mm) if has_poses else None,
+            "rotation_rad": float(fit.noise.rotation_rad) if has_poses else None,
+            "points_mm": fit.point_noise_mm if meas.point_names else None,
             "source": fit.noise_source,
         },
         "initial": {"delta_p_mm": _float(dps[0]), "delta_R_rad": _float(dRs[0])},
@@ -630,8 +644,8 @@ def _calibrate_effects(
         "outliers": {
             "threshold": OUTLIER_THRESHOLD,
             "scale": {
-                "position_mm": float(fit.noise.position_mm),
-                "rotation_rad": float(fit.noise.rotation_rad),
+                "position_mm": float(fit.noise.position_mm) if has_poses else None,
+                "rotation_rad": float(fit.noise.rotation_rad) if has_poses else None,
                 "source": "noise model" if fit.noise_source == "given" else "noise estimate",
             },
             "poses": [ids[i] for i in np.flatnonzero(flagged)],
@@ -972,9 +986,16 @@ def _report(arm: Arm, r: dict, model_label: str, data: str, ident: str) -> str:
         what = (
             "noise scales (estimated from the residual)"
             if n.get("source") == "estimated"
-            else ("noise model")
+            else "noise model"
         )
-        lines.append(f"{what}: {n['position_mm']:.3g} mm, {n['rotation_rad']:.3g} rad")
+        parts = []
+        if n.get("position_mm") is not None:
+            parts.append(f"{n['position_mm']:.3g} mm")
+        if n.get("rotation_rad") is not None:
+            parts.append(f"{n['rotation_rad']:.3g} rad")
+        if n.get("points_mm") is not None:
+            parts.append(f"points {n['points_mm']:.3g} mm")
+        lines.append(f"{what}: {', '.join(parts)}")
         reg = r.get("registration") or {}
         if reg.get("registered"):
             lines.append(

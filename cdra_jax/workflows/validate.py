@@ -24,21 +24,18 @@ from typing import Any, NamedTuple
 import numpy as np
 from matplotlib.figure import Figure
 
-from .. import lie
 from ..arm import Arm
-from ..calibration.model import tool_points
 from ..calibration.observations import (
-    Observations,
     error_table,
     make_observations,
     marker_table,
     row_means,
 )
 from ..calibration.registration import initial_guess
-from ..io import Measurements, calibrated_arm_from_result, load_result
-from ..io.model import effects_from_list
-from ..physics import check_effect_data, model_effects, model_tool_pose
+from ..io import Measurements, load_result
+from ..physics import RefitData, check_effect_data, model_tool_pose, prediction_error_table
 from ..plots import validation_figure
+from .calibrate import result_arm
 from .inputs import Data, Model, resolve_arm, resolve_measurements
 from .result import JsonResult
 
@@ -69,37 +66,19 @@ def prediction_errors(arm: Arm, meas: Measurements) -> PredictionErrors:
     xyz, _ = marker_table(arm, meas.point_names)
     if arm.effects:
         check_effect_data(arm, meas.aux)
-        pos, ang = _effect_error_table(arm, meas, xyz, obs)
+        pos, ang = _effect_error_table(arm, meas, xyz)
     else:
         pos, ang = error_table(arm.frames, xyz, obs)
     return PredictionErrors(pos, ang, ("pose", *meas.point_names))
 
 
 def _effect_error_table(
-    arm: Arm, meas: Measurements, xyz: np.ndarray, obs: Observations
+    arm: Arm, meas: Measurements, xyz: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`~cdra_jax.calibration.observations.error_table` of the model with its effects."""
-    tool = np.asarray(model_tool_pose(arm, meas.q, meas.aux), dtype=float)
-    full = np.asarray(obs.full_poses, dtype=float)
-    mask = np.asarray(obs.pose_mask)
-    dpos = np.linalg.norm(full[:, :3, 3] - tool[:, :3, 3], axis=-1)
-    ang = np.asarray(lie.rotation_angle(np.swapaxes(full[:, :3, :3], -1, -2) @ tool[:, :3, :3]))
-    dpos = np.where(mask, dpos, np.nan)
-    ang = np.where(mask, ang, np.nan)
-    pts = np.asarray(tool_points(tool, xyz), dtype=float)
-    e = np.linalg.norm(np.asarray(obs.points) - pts, axis=-1)
-    e = np.where(np.asarray(obs.seen), e, np.nan)
-    return np.concatenate([dpos[:, None], e], axis=1), ang
-
-
-def result_arm(result: Mapping[str, Any], nominal: Arm, source: str = "<result>") -> Arm:
-    """The calibrated model of a result: ``nominal`` with its calibrated frames and markers
-    (Eq. 19) and, when the calibration refined the model's effects, their refined values."""
-    arm = calibrated_arm_from_result(result, nominal)
-    if result.get("effects"):
-        arm = arm.with_effects(effects_from_list(result["effects"], source))
-        model_effects(arm, source)
-    return arm
+    tool = model_tool_pose(arm, meas.q, meas.aux)
+    data = RefitData.make(meas.m, meas.full_poses, meas.points, xyz)
+    return prediction_error_table(tool, data)
 
 
 def _num(x: float) -> float | None:
@@ -333,9 +312,7 @@ def _registered(arm: Arm, meas: Measurements, register: bool) -> Arm:
     if placed:
         out = out.with_markers(
             [
-                dataclasses.replace(mk, xyz=_xyz(placed[mk.name]))
-                if mk.name in placed
-                else mk
+                dataclasses.replace(mk, xyz=_xyz(placed[mk.name])) if mk.name in placed else mk
                 for mk in arm.markers
             ]
         )
