@@ -12,11 +12,11 @@ prints. The command line and the notebooks call this same function.
 
 A model with ``[[effects]]`` is calibrated with them: the frame errors and the effects'
 parameters are refined jointly (:func:`cdra_jax.physics.refine`, Levenberg-Marquardt on the
-whitened Eq. 7 residual of the extended model, noise scales given or estimated); the result
-holds the refined effects (``effects``, the model file's entries, and ``effect_parameters``
-with start values, standard deviations and 95 % intervals) and the calibrated model
-(:attr:`CalibrationRun.calibrated_arm`, ``--model-out``) carries them. This needs full
-measured tool poses and the auxiliary columns the effects use.
+whitened residual of full poses and points against the extended model, noise scales given or
+estimated); the result holds the refined effects (``effects``, the model file's entries, and
+``effect_parameters`` with start values, standard deviations and 95 % intervals) and the
+calibrated model (:attr:`CalibrationRun.calibrated_arm`, ``--model-out``) carries them. This
+needs the auxiliary columns the effects use, and markers at known positions.
 """
 
 from __future__ import annotations
