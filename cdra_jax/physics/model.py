@@ -280,7 +280,9 @@ def model_tool_pose(
     if theta is None:
         theta = values
     aux = {k: jnp.asarray(v, q.dtype) for k, v in (aux or {}).items()}
-    return _predict(arm, cands, q, aux, jnp.asarray(theta, q.dtype))
+    # The records hold values: strip them from the compiled call's static arguments (the
+    # candidates and theta carry them), so that other values reuse the compiled program.
+    return _predict(arm.with_effects(()), cands, q, aux, jnp.asarray(theta, q.dtype))
 
 
 @filter_jit

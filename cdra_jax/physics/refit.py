@@ -364,6 +364,9 @@ def refine(
     data = RefitData.make(m, measured, points, point_xyz)
     aux = {k: jnp.asarray(v, q.dtype) for k, v in aux.items()}
     cands, theta0 = model_effects(arm)
+    # The values travel in theta; without the records in the compiled calls' static arguments,
+    # other start values reuse the compiled programs.
+    arm = arm.with_effects(())
     n, p = arm.n_params, theta0.size
     X0 = np.zeros(n) if errors0 is None else np.asarray(errors0, float).reshape(n)
     y = np.concatenate([X0, theta0])
