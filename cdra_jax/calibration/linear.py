@@ -22,6 +22,8 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from .nullspace import orthonormalise
+
 
 def default_rcond(dtype) -> float:
     """``eps ** (2/3)`` of ``dtype``: the relative singular-value cut-off used by default."""
@@ -277,7 +279,7 @@ def null_space_solve(N: ArrayLike, g: ArrayLike, Z: ArrayLike) -> tuple[Array, A
     A = N * s[:, None] * s[None, :]
     structural = jnp.zeros((), N.dtype)
     if Z.shape[-1]:
-        Zs, _ = jnp.linalg.qr(Z * d[:, None])
+        Zs = orthonormalise(Z * d[:, None])
         structural = jnp.max(jnp.abs(A @ Zs))
         A = A + Zs @ Zs.T
     L = jnp.linalg.cholesky(A)
@@ -311,7 +313,7 @@ def null_space_basis(N: ArrayLike, Z: ArrayLike) -> tuple[Array, Array, Array]:
     if k:
         Q, _ = jnp.linalg.qr(Z, mode="complete")
         W = Q[:, k:]
-        Zs, _ = jnp.linalg.qr(Z * d[:, None])
+        Zs = orthonormalise(Z * d[:, None])
         structural = jnp.max(jnp.abs((N / d[:, None] / d[None, :]) @ Zs))
         NW = W.T @ N @ W
     else:
