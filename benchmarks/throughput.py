@@ -10,9 +10,10 @@ measurements unless ``--noise`` is given. All problems are generated once with
     ``--xla-defaults`` adds rows compiled with plain ``jax.jit``); ``weighted``: the same with
     the noise model of ``--noise-pos-mm`` / ``--noise-rot-rad`` (whitened residual);
 (b) ``lm``: the same with :func:`cdra_jax.calibrate_lm` (optimistix Levenberg-Marquardt);
-    ``--lean`` adds rows ``*_lean`` with the JAX solvers as a Monte-Carlo sweep runs them:
-    ``singular_values=False`` (no final QR + SVD; :mod:`cdra_jax.sweeps` does so) and, for
-    paper and weighted, ``predictive_stop=True`` (one step fewer, answers within 1e-8 mm);
+    ``--lean`` adds rows ``*_lean`` with the JAX solvers as ``run_sweep(...,
+    predictive_stop=True)`` runs them: ``singular_values=False`` (no final QR + SVD;
+    :mod:`cdra_jax.sweeps` always does so) and, for paper and weighted, ``predictive_stop=True``
+    (one step fewer, answers within 1e-8 mm);
 (c) ``numpy``: a plain NumPy loop over trials (``benchmarks/baselines.py``: Rodrigues exp,
     Eq. 27 log, Eq. 25 adjoint, per-pose stacking, ``np.linalg.lstsq``), the reference of
     the ratios; ``numpy_vec`` is the same algorithm batched over the poses of a trial;
@@ -483,7 +484,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument(
         "--lean",
         action="store_true",
-        help="also time the JAX solvers as a sweep runs them (rows *_lean): singular_values="
+        help="also time the JAX solvers as run_sweep(..., predictive_stop=True) runs them (rows "
+        "*_lean): singular_values="
         "False and, for paper and weighted, predictive_stop=True",
     )
     p.add_argument("--scaling", action="store_true", help="trials/s against N and m instead")

@@ -406,6 +406,7 @@ def _trial_function(
     m_verify: int,
     sampler: StateSampler | None,
     max_iterations: int | None,
+    predictive_stop: bool = False,
 ) -> Callable:
     """``f(arm, base_key, trial, noise_pos, noise_rot) -> dict`` of one trial's outputs.
 
@@ -428,10 +429,11 @@ def _trial_function(
         kw: dict = {"singular_values": False}
         if max_iterations is not None:
             kw["max_iterations"] = max_iterations
+        gn = {"predictive_stop": True} if predictive_stop else {}
         if solver == "paper":
-            sol = calibrate_paper(arm, q_cal, T_cal, None, throw=False, **kw)
+            sol = calibrate_paper(arm, q_cal, T_cal, None, throw=False, **kw, **gn)
         elif solver == "weighted":
-            sol = calibrate_paper(arm, q_cal, T_cal, noise, throw=False, **kw)
+            sol = calibrate_paper(arm, q_cal, T_cal, noise, throw=False, **kw, **gn)
         else:
             sol = calibrate_lm(arm, q_cal, T_cal, noise, throw=False, **kw)
         actual = apply_frame_errors(arm, X)
@@ -468,11 +470,14 @@ def _batched_trials(
     m_verify: int,
     sampler: StateSampler | None,
     max_iterations: int | None,
+    predictive_stop: bool = False,
 ) -> Callable:
     """The jitted and vmapped trial function of one cell (cached across sweeps, so a repeated
     sweep with the same settings and chunk size does not compile again; JAX compiles it once
     per device it runs on)."""
-    f = _trial_function(m, solver, noisy, d_v, d_w, m_verify, sampler, max_iterations)
+    f = _trial_function(
+        m, solver, noisy, d_v, d_w, m_verify, sampler, max_iterations, predictive_stop
+    )
     return jit(jax.vmap(f, in_axes=(None, None, 0, 0, 0)))
 
 
@@ -552,6 +557,7 @@ def run_sweep(
     m_verify: int = 50,
     sampler: StateSampler | None = None,
     max_iterations: int | None = None,
+    predictive_stop: bool = False,
     devices: Sequence[jax.Device] | None = None,
     progress: bool = True,
     checkpoint: str | os.PathLike | None = None,
@@ -576,6 +582,10 @@ def run_sweep(
             :func:`cdra_jax.modules.sample_feasible_states`; modules without cables stay
             uniform). Pass :func:`cdra_jax.simulation.sample_states` for plain uniform states.
         max_iterations: solver iteration cap (default: each solver's own).
+        predictive_stop: the paper and weighted solvers stop once the remaining steps are
+            predicted below their tolerance (:func:`~cdra_jax.calibration.calibrate_paper`):
+            about one step fewer per trial, frames and held-out errors within 1e-8 mm; the fit
+            metrics of a noise-free trial then end near 1e-10 mm rather than 1e-13.
         devices: devices to split every chunk over (default ``jax.devices()``); several CPU
             devices need a large enough thread pool (:func:`cdra_jax.parallel.check_devices`,
             ``ValueError`` otherwise).
@@ -647,6 +657,8 @@ def run_sweep(
             "devices": n_dev,
             "dtype": str(dtype),
         }
+        if predictive_stop:  # only then: checkpoints of earlier sweeps stay valid
+            settings["predictive_stop"] = True
         store = _Checkpoint(Path(checkpoint), settings)
     bar = _progress(total, progress)
     try:
@@ -667,6 +679,7 @@ def run_sweep(
                 int(m_verify),
                 sampler,
                 max_iterations,
+                bool(predictive_stop),
             )
             for start in starts:
                 stop = min(start + chunk, n)

@@ -395,3 +395,15 @@ def test_default_cpu_devices_pay_for_their_compilation():
     assert default_cpu_devices(0) == default_cpu_devices(TRIALS_PER_EXTRA_DEVICE - 1) == 1
     assert default_cpu_devices(2 * TRIALS_PER_EXTRA_DEVICE) == min(2, schedulable_cores())
     assert default_cpu_devices(10**12) == schedulable_cores()
+
+
+@pytest.mark.slow
+def test_predictive_stop_keeps_the_heldout_errors(cdra, table):
+    """``predictive_stop=True``: one step fewer per trial at most a few, the held-out errors
+    and the parameter errors within 1e-8 of the default stop's."""
+    fast = run_sweep(cdra, LEVELS, [5], trials=3, predictive_stop=True, **CELL)
+    assert np.all(fast["iterations"] <= table["iterations"])
+    assert np.all(fast["converged"])
+    for c in ("dp_heldout", "dR_heldout", "dp_verify", "param_err"):
+        np.testing.assert_allclose(fast[c], table[c], rtol=0, atol=1e-8, err_msg=c)
+    np.testing.assert_array_equal(fast["rank"], table["rank"])
