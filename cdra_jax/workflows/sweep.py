@@ -98,6 +98,7 @@ def sweep(
     progress: bool = True,
     checkpoint: str | os.PathLike | None = None,
     model_label: str | None = None,
+    predictive_stop: bool = False,
 ) -> SweepRun:
     """Monte-Carlo sweep of the calibration's accuracy over noise levels, pose counts, solvers.
 
@@ -117,6 +118,8 @@ def sweep(
             interruption resumes where it stopped (same table; see
             :func:`cdra_jax.sweeps.run_sweep`).
         model_label: name of the model in the table's metadata.
+        predictive_stop: the paper and weighted solvers stop a step earlier (see
+            :func:`cdra_jax.sweeps.run_sweep`).
     """
     for flag, n in (("trials", trials), ("verify", verify), ("chunk", chunk)):
         check_range(flag, n)
@@ -146,6 +149,7 @@ def sweep(
         m_verify=verify,
         progress=progress,
         checkpoint=checkpoint,
+        predictive_stop=predictive_stop,
     )
     table.meta["model"] = model_label
     return SweepRun(table, model_label)
