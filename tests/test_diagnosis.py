@@ -534,3 +534,43 @@ def test_a_candidate_that_fails_numerically_is_marked_failed_and_the_diagnosis_g
     row = next(r for r in d.candidates if r.effect == "broken")
     assert row.skipped == "failed: its features are not finite on these data"
     assert "broken@elbow (failed" in d.report
+
+
+def _tanh_stretch(q):
+    """A saturating transmission stretch at the elbow (no effect of the vocabulary has it)."""
+    v = 0.3 * jnp.tanh(2 * q[:, 3])
+    z = jnp.zeros_like(v)
+    return jnp.stack([v, v, z, z, z, z], -1)
+
+
+@pytest.mark.parametrize("case", ["clean", "compliance", "saturating"])
+def test_the_verdict_does_not_depend_on_the_noise_values(case):
+    """The verdict rests on tests without a noise value: the same effect and place with the
+    true noise and with every noise value scaled by 0.7 or 1.3; a stated noise that the
+    residuals contradict is said to be so, without changing the verdict."""
+    from cdra_jax import NoiseModel
+
+    if case == "clean":
+        meas, expected = recordings(seed=1), ("none", None)
+    elif case == "compliance":
+        meas = recordings(find("joint_compliance", "shoulder"), [4e-7])
+        expected = ("joint_compliance", "shoulder")
+    else:
+        meas, expected = recordings(distortion=_tanh_stretch), ("unattributed", "elbow")
+    for k in (0.7, 1.0, 1.3):
+        noise = NoiseModel(NOISE.position_mm * k, NOISE.rotation_rad * k)
+        d = diagnose(base().arm, meas, noise)
+        assert (d.effect, d.located_in) == expected, (k, d.report)
+        if case == "clean":
+            text = "noisier than stated" if k == 0.7 else "consistent with the residuals"
+            assert text in d.report, (k, d.report)
+
+
+def test_a_shape_the_vocabulary_lacks_is_unattributed_where_it_lives_without_noise_values():
+    """A saturating stretch at the elbow, the noise estimated: not absorbed by a flexible
+    candidate (a periodic error fits it partly), but reported unattributed and located at the
+    elbow, whose states predict the residual's structure."""
+    d = diagnose(base().arm, recordings(distortion=_tanh_stretch), None)
+    assert d.mismatch and (d.effect, d.located_in) == ("unattributed", "elbow"), d.report
+    assert d.details["location_source"] in ("structure", "partial candidate")
+    assert d.tests["structure"]["p_value"] < 0.01

@@ -524,6 +524,16 @@ def diagnose(
     p_in = float(scipy.stats.chi2.sf(chi2_in, df_resid)) if given else None
     groups = stats.repeat_groups(np.asarray(meas.q), REPEAT_TOL)
     lof = stats.lack_of_fit(r, groups, df_resid, floor2, row=layout.row, entry=layout.entry)
+    X_reg, reg_groups, group_names = _regressors(arm, meas)
+
+    def structure(res, basis):
+        """The structure test on a residual; not applicable (p = 1) to a residual at the
+        rounding level (exact data, an exact fit)."""
+        if float(np.mean(res * res)) <= floor2:
+            return stats.Structure(0.0, 1.0, 0.0, math.nan)
+        return stats.structure_test(res, basis, X_reg, layout.row, layout.entry, reg_groups)
+
+    struct0 = structure(r, UD)
 
     # 4. candidate table: one row per (effect, location); its variants are alternatives
     evals: dict[Candidate, dict] = {}
@@ -585,9 +595,12 @@ def diagnose(
         ]
     p_family = min(adj.values(), default=1.0)
 
-    tests_used = {"candidates": p_family}
-    if p_heldout is not None:
-        tests_used["heldout_chi2"] = p_heldout
+    # The verdict rests on tests that need no noise value (their statistics do not change when
+    # every noise value is scaled): the candidates' F tests, the residual's structure, the
+    # lack of fit between repeats. A chi-square against given noise values checks those values.
+    probe_rows, probe_place = _locate(probes, cols, r, J, UD, df_resid, alpha, floor2)
+    p_probes = min((row_["p_value"] for row_ in probe_rows), default=1.0)
+    tests_used = {"candidates": p_family, "structure": struct0.p_value, "probes": p_probes}
     if lof is not None and lof.p_value is not None:
         tests_used["lack_of_fit"] = lof.p_value
     p_value = min(1.0, len(tests_used) * min(tests_used.values()))
@@ -640,7 +653,18 @@ def diagnose(
                 ho1.sum_of_squares - ho1.expected_sum_of_squares,
             ),
         )
+        refit_info["explained_fraction_heldout"] = float(explained)
+        U1 = stats.orthonormal_basis(
+            J1[:, np.concatenate([np.arange(n_geo), n_geo + _columns(forms, cols)])]
+        )
+        struct1 = structure(r1, U1)
+        explained = _explained(struct0.gain, struct1.gain)
         refit_info["explained_fraction"] = float(explained)
+        refit_info["structure_after"] = {
+            "statistic": struct1.statistic,
+            "p_value": struct1.p_value,
+            "scale": _num(struct1.scale),
+        }
         implausible = [
             f"{k} = {v.value:.3g} {v.unit} (physical range {v.range_low:g} to {v.range_high:g})"
             for k, v in parameters.items()
@@ -654,7 +678,8 @@ def diagnose(
                 "reason": "physically implausible estimate: " + "; ".join(implausible),
             }
             effect_name = "unattributed"
-        elif given and p_after is not None and p_after < alpha and explained < EXPLAINED_MIN:
+        elif struct1.p_value < alpha and explained < EXPLAINED_MIN:
+            # structure remains that the effect does not explain: a shape the vocabulary lacks
             effect_name = "unattributed"
         else:
             y_model, model_forms = y1, list(forms)
@@ -667,11 +692,22 @@ def diagnose(
     elif mismatch:
         effect_name = "unattributed"
 
-    probe_rows = []
     location_source = None if located_in is None else "candidate"
+    structure_rows: list[dict] = []
     if effect_name == "unattributed":
-        probe_rows, located_in = _locate(probes, cols, r, J, UD, df_resid, alpha, floor2)
+        located_in = probe_place
         location_source = None if located_in is None else "probe"
+        # where the residual's structure lives: the module (or column) whose regressors
+        # alone predict it best
+        gp = struct0.group_p if struct0.group_p is not None else np.ones(0)
+        by_group: list[tuple[float, str]] = sorted(
+            (min(1.0, len(group_names) * float(gp[g])), name)
+            for g, name in enumerate(group_names)
+            if g < gp.size
+        )
+        structure_rows = [{"location": name, "p_value": p_g} for p_g, name in by_group]
+        if by_group and by_group[0][0] < alpha:
+            located_in, location_source = _place(arm, by_group[0][1]), "structure"
         if best is not None:
             parameters = {}
             if refit_info["explained_fraction"] >= LOCATE_MIN:
@@ -724,6 +760,12 @@ def diagnose(
                 "repeated_groups": len(groups),
                 "applicable": lof.applicable,
             },
+            "structure": {
+                "statistic": struct0.statistic,
+                "p_value": struct0.p_value,
+                "scale": _num(struct0.scale),
+                "regressors": list(group_names),
+            },
             "candidates_min_p_holm": p_family,
             "combined": {"p_value": p_value, "tests": sorted(tests_used), "rule": "Bonferroni"},
         },
@@ -745,6 +787,7 @@ def diagnose(
             },
             "refit": refit_info or None,
             "probes": probe_rows,
+            "structure_by_location": structure_rows,
             "best_candidate": None if best is None else best.label,
             "location_source": location_source,
         },
@@ -813,13 +856,40 @@ def _xyz(v: np.ndarray) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
+def _place(arm: Arm, regressor: str) -> str:
+    """Where a misfit predictable from ``regressor`` lives: the module itself, the base for
+    ``time_s`` (a drift of the mount), the tool for ``payload_kg``."""
+    if regressor == "time_s":
+        return arm.frame_names[0]
+    if regressor == "payload_kg":
+        return arm.frame_names[-1]
+    return regressor
+
+
+def _regressors(arm: Arm, meas: Measurements) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """``(X (m, d), groups (d,), names)``: what a missing effect may depend on, per row: the
+    module states (one group per module: its entries together) and each auxiliary column that
+    varies (``time_s``, ``payload_kg``), with the group names
+    (module names, the column's name else)."""
+    cols = [np.asarray(meas.q, float)]
+    groups = [int(g) for g in np.repeat(np.arange(len(arm.modules)), [m.dof for m in arm.modules])]
+    names = list(arm.module_names)
+    for k in sorted(meas.aux):
+        v = np.asarray(meas.aux[k], float)
+        if np.ptp(v) > 0 and not k.startswith("approach."):  # (backlash: its own candidates)
+            cols.append(v[:, None])
+            groups.append(len(names))
+            names.append(k)
+    return np.concatenate(cols, axis=1), np.asarray(groups), names
+
+
 def _finite_columns(F: Features) -> tuple[Features, np.ndarray]:
     """``F`` with every parameter column that has a non-finite entry set to zero (it would
     poison the residual: ``nan * 0`` is ``nan``), and which columns ``(p,)`` were finite."""
     parts = (F.state, F.module_twist, F.frame_deflection)
     finite = np.ones(F.n_params, bool)
-    for a in parts:
-        a = np.asarray(a)
+    for part in parts:
+        a = np.asarray(part)
         finite &= np.all(np.isfinite(a.reshape(-1, a.shape[-1])), axis=0)
     if finite.all():
         return F, finite

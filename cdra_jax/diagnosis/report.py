@@ -46,6 +46,31 @@ def _noise_text(noise: dict) -> str:
     return ", ".join(parts)
 
 
+def _noise_check(d: Diagnosis, ho: dict) -> str:
+    """The given noise values against the residual: the held-out chi-square and, where it
+    contradicts them, the noise the residual suggests."""
+    text = (
+        f"Stated noise: held-out chi-square {ho['statistic']:.1f} (expected {ho['expected']:.0f}), "
+        f"p = {_p(ho['p_value'])}"
+    )
+    ratio = (ho["statistic"] / ho["expected"]) ** 0.5 if ho["expected"] else 1.0
+    alpha = d.details["alpha"]
+    if ho["p_value"] < alpha or ratio < 0.7:
+        sug = _noise_text(d.details["noise_suggested"])
+        cause = (
+            "the missing physics above adds to it"
+            if d.mismatch
+            else "the residuals contradict the stated noise: the measuring device is "
+            + ("noisier" if ratio > 1 else "less noisy")
+            + " than stated"
+        )
+        return (
+            f"{text}: the held-out residuals are {ratio:.2g} times what the stated noise "
+            f"explains ({cause}; the residual suggests {sug})."
+        )
+    return text + ": consistent with the residuals."
+
+
 def _skipped_text(candidates) -> list[str]:
     """One entry per skipped effect where every location was skipped for the same reason (an
     arm without cables: "cable_elasticity (no module has cables in the model)"), else one per
@@ -89,11 +114,12 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         f"(noise {d.noise['source']}: {_noise_text(d.noise)}).",
     ]
     parts = []
-    ho = t["heldout_chi2"]
-    if ho["p_value"] is not None:
+    st = t.get("structure") or {}
+    if st.get("p_value") is not None:
+        regs = ", ".join(st.get("regressors", ()))
         parts.append(
-            f"held-out chi-square {ho['statistic']:.1f} (expected {ho['expected']:.0f}), "
-            f"p = {_p(ho['p_value'])}"
+            f"residual structure (predictable on left-out poses from: {regs}) "
+            f"p = {_p(st['p_value'])}"
         )
     if t["lack_of_fit"] is not None:
         lof = t["lack_of_fit"]
@@ -109,14 +135,17 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
             )
     parts.append(f"best candidate test p = {_p(t['candidates_min_p_holm'])} (Holm)")
     verdict = (
-        "is WORSE than the measuring device explains"
+        "leaves a misfit that the geometric model cannot explain"
         if d.mismatch
-        else "is consistent with the measuring device"
+        else "leaves nothing the geometric model cannot explain"
     )
     lines.append(
-        f"The fit {verdict}: {'; '.join(parts)}; combined p = {_p(d.p_value)} "
-        f"(alpha = {det['alpha']:g})."
+        f"The fit {verdict} (tests that need no noise value): {'; '.join(parts)}; combined "
+        f"p = {_p(d.p_value)} (alpha = {det['alpha']:g})."
     )
+    ho = t["heldout_chi2"]
+    if ho["p_value"] is not None:
+        lines.append(_noise_check(d, ho))
     if d.effect == "none":
         lines.append("No missing physics detected: the geometric model explains the recordings.")
     elif d.effect == "unattributed":
@@ -143,20 +172,9 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
             )
         else:
             msg += (
-                " No single location explains it, and no pose-dependent probe finds structure in it"
+                " No single location explains it (no module's states, and no pose-dependent "
+                "probe, predict it on their own)."
             )
-            if d.noise["source"] == "given":
-                sug = det["noise_suggested"]
-                msg += (
-                    ": the measuring device may be noisier than stated (the residual suggests "
-                    f"{_noise_text(sug)})."
-                )
-            else:
-                msg += (
-                    " (the noise was estimated from the residual, so the misfit is one that "
-                    "the tests without a noise value see: between repeated poses, or along a "
-                    "candidate)."
-                )
         lines.append(msg)
     else:
         assert best is not None
