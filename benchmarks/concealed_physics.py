@@ -82,8 +82,10 @@ Diagnose = Callable[[str, str, float, float], Mapping[str, Any]]
 """``diagnose(model_path, data_path, noise_pos_mm, noise_rot_rad) -> Diagnosis.to_dict()``."""
 
 
-def load_analyser() -> Diagnose:
-    """``cdra_jax.diagnosis.diagnose_files`` as a :data:`Diagnose`, imported only when needed."""
+def load_analyser(noise_given: bool = True) -> Diagnose:
+    """``cdra_jax.diagnosis.diagnose_files`` as a :data:`Diagnose`, imported only when needed;
+    without ``noise_given`` the analyser gets no noise values (it estimates them), as a user
+    who does not know the device's noise runs it."""
     try:
         from cdra_jax.diagnosis import diagnose_files
     except ImportError as e:
@@ -96,6 +98,8 @@ def load_analyser() -> Diagnose:
         raise
 
     def diagnose(model: str, data: str, sp: float, sr: float) -> Mapping[str, Any]:
+        if not noise_given:
+            return diagnose_files(model, data, None, None, seed=0).to_dict()
         return diagnose_files(model, data, sp, sr, seed=0).to_dict()
 
     return diagnose
@@ -606,6 +610,12 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[Config, bool]:
     p.add_argument("--no-twins", action="store_true", help="skip the clean twins (no held-out)")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
     p.add_argument("--quick", action="store_true", help="a small run (a few minutes)")
+    p.add_argument(
+        "--noise-not-given",
+        action="store_true",
+        help="run the analyser without noise values (it estimates them), as a user who does "
+        "not know the device's noise",
+    )
     a = p.parse_args(argv)
     cfg = Config(seed=a.seed, model=a.model, out=a.out, twins=not a.no_twins)
     if a.quick:
@@ -633,12 +643,13 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[Config, bool]:
     if any(x <= 0 for x in sp + sr) or any(s <= 0 for s in cfg.sizes) or cfg.trials < 1:
         p.error("noise levels, sizes and --trials must be positive")
     cfg.noise = tuple(zip(sp, sr, strict=True))
+    cfg.extra["noise_given"] = not a.noise_not_given
     return cfg, a.json
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     cfg, as_json = parse_args(argv)
-    diagnose = load_analyser()
+    diagnose = load_analyser(bool(cfg.extra.get("noise_given", True)))
     log = (lambda s: print(s, file=sys.stderr)) if as_json else print
     result = run(cfg, diagnose, log=log)
     print(report(result), file=sys.stderr if as_json else sys.stdout)

@@ -18,7 +18,7 @@ states concatenated in chain order, spherical modules contributing their rotatio
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Literal
 
 import equinox as eqx
@@ -344,6 +344,21 @@ class Arm(eqx.Module):
     def with_markers(self, markers: Sequence[Marker]) -> Arm:
         """The same arm with other markers (e.g. calibrated positions)."""
         return dataclasses.replace(self, markers=tuple(markers))
+
+    def with_marker_positions(self, positions: Mapping[str, ArrayLike]) -> Arm:
+        """The same arm with the named markers at other positions ``{name: (3,)}`` (mm, tool
+        frame), e.g. calibrated ones; the other markers and every ``calibrate`` flag unchanged.
+        """
+        unknown = sorted(set(positions) - {mk.name for mk in self.markers})
+        if unknown:
+            raise ValueError(f"arm {self.name!r} has no marker(s) {unknown}")
+        out = []
+        for mk in self.markers:
+            if mk.name in positions:
+                v = np.asarray(positions[mk.name], dtype=float).reshape(3)
+                mk = dataclasses.replace(mk, xyz=(float(v[0]), float(v[1]), float(v[2])))
+            out.append(mk)
+        return self.with_markers(out)
 
     def with_effects(self, effects: Sequence[EffectRecord]) -> Arm:
         """The same arm with other effect records (e.g. refitted values, or ``()``: the

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from ..arm import Arm, Marker
+from ..arm import Arm
 from ..calibration import NoiseModel
 from ..calibration.auto import calibrate_auto
 from ..calibration.model import stacked_system
@@ -822,14 +822,7 @@ def _refit_model(
     )
     out = _gravity_in_fit_frame(problem.arm.with_frames(frames), nominal)
     at = np.asarray(xyz, float)
-    placed = {point_names[j]: at[j] for j in problem.calibrated}
-    if placed:
-        out = out.with_markers(
-            [
-                Marker(mk.name, _xyz(placed[mk.name]), mk.calibrate) if mk.name in placed else mk
-                for mk in out.markers
-            ]
-        )
+    out = out.with_marker_positions({point_names[j]: at[j] for j in problem.calibrated})
     if effects:
         own = y[n : problem.n_geometric]
         n_geo = problem.n_geometric
@@ -850,10 +843,6 @@ def _not_in_model(
         else (c, why)
         for c, why in table
     ]
-
-
-def _xyz(v: np.ndarray) -> tuple[float, float, float]:
-    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def _place(arm: Arm, regressor: str) -> str:

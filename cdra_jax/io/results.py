@@ -50,7 +50,6 @@ numbers are written as ``null``. ``matrix`` entries reproduce the frames bit for
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.metadata
 import json
 import math
@@ -438,16 +437,10 @@ def calibrated_arm_from_result(result: Mapping[str, Any], nominal: Arm) -> Arm:
         )
     arm = nominal.with_frames(jnp.asarray(np.stack([frames[n] for n in nominal.frame_names])))
     markers = result.get("markers") or {}
-    if markers:
-        arm = arm.with_markers(
-            [
-                dataclasses.replace(mk, xyz=tuple(markers[mk.name]["calibrated"]))
-                if mk.name in markers
-                else mk
-                for mk in nominal.markers
-            ]
-        )
-    return arm
+    known = {mk.name for mk in nominal.markers}
+    return arm.with_marker_positions(
+        {name: v["calibrated"] for name, v in markers.items() if name in known}
+    )
 
 
 def auto_result_to_dict(

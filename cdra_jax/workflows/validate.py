@@ -308,15 +308,7 @@ def _registered(arm: Arm, meas: Measurements, register: bool) -> Arm:
     xyz, calibrated = marker_table(arm, meas.point_names)
     start = initial_guess(np.asarray(arm.frames), xyz, obs, calibrated)
     placed = {meas.point_names[j]: start.xyz[j] for j in calibrated}
-    out = arm.with_frames(start.frames)
-    if placed:
-        out = out.with_markers(
-            [
-                dataclasses.replace(mk, xyz=_xyz(placed[mk.name])) if mk.name in placed else mk
-                for mk in arm.markers
-            ]
-        )
-    return out
+    return arm.with_frames(start.frames).with_marker_positions(placed)
 
 
 def _with_markers_of(other: Arm, model: Arm, meas: Measurements) -> Arm:
@@ -325,8 +317,3 @@ def _with_markers_of(other: Arm, model: Arm, meas: Measurements) -> Arm:
     have = {mk.name for mk in other.markers}
     missing = [mk for mk in model.markers if mk.name not in have and mk.name in meas.point_names]
     return other.with_markers([*other.markers, *missing]) if missing else other
-
-
-def _xyz(v) -> tuple[float, float, float]:
-    """Three floats (mm) from an array of shape ``(3,)``."""
-    return (float(v[0]), float(v[1]), float(v[2]))
