@@ -236,16 +236,21 @@ def _paper_solver(
                 return svd_step(lin, frames)
             return jax.lax.cond(use_svd, svd_step, null_step, lin, frames)
 
-        # One linearisation per pass: a pass steps while the iteration runs, and the last pass
-        # only linearises the final model (for Eqs. 20-21 and the rank), so that the model
-        # (Eq. 9) is compiled once.
+        # One linearisation per pass: a pass steps while the iteration runs. With the singular
+        # values asked for, the last pass only linearises the final model (for Eqs. 20-21, the
+        # cost and the QR + SVD), so that the model (Eq. 9) is compiled once. Without them the
+        # loop only steps (the carry then holds no linearisation, 17 kB per trial for the CDRA)
+        # and the final model's residual and Eqs. 20-21 are evaluated after it: cheaper than a
+        # whole pass, which under vmap every trial of a chunk runs.
+        final_pass = singular_values
+
         def body(carry):
-            k, frames, steps, dps, dRs, (rank_lo, rank_hi, resolved), done, ok, _, _ = carry
+            k, frames, steps, dps, dRs, (rank_lo, rank_hi, resolved), done, ok = carry[:8]
             lin = kernels.linearise(frames, P, T, noise)
             dps = dps.at[k].set(lin.delta_p)
             dRs = dRs.at[k].set(lin.delta_R)
             # A fast step that cannot be trusted means a redo with SVD steps: stop stepping.
-            stepping = (k < max_iterations) & ~done & ok & resolved
+            stepping = stepping_at(k, done, ok, resolved)
             X, rank, res = step_of(lin, frames)
             step = jnp.linalg.norm(X)
             finite = jnp.isfinite(step)
@@ -257,7 +262,7 @@ def _paper_solver(
                 previous = steps[jnp.maximum(k - 1, 0)]
                 tail = (k > 0) & (step * step < PREDICTIVE_MARGIN * tol * (previous - step))
                 converged = converged | tail
-            return (
+            out = (
                 k + stepping,
                 jnp.where(stepping & finite, moved, frames),
                 jnp.where(stepping, steps.at[k].set(step), steps),
@@ -270,29 +275,49 @@ def _paper_solver(
                 ),
                 jnp.where(stepping, converged, done),
                 jnp.where(stepping, finite, ok),
-                ~stepping,
-                lin,
             )
+            return out + (~stepping, lin) if final_pass else out
 
-        lin0 = jax.eval_shape(lambda: kernels.linearise(frames0, P, T, noise))
-        init = batched_like(
+        def stepping_at(k, done, ok, resolved):
+            return (k < max_iterations) & ~done & ok & resolved
+
+        head = (
+            jnp.asarray(0),
+            frames0,
+            jnp.full((max_iterations,), nan),
+            jnp.full((max_iterations + 1,), nan),
+            jnp.full((max_iterations + 1,), nan),
+            (jnp.asarray(n), jnp.asarray(0), jnp.asarray(True)),  # step ranks, all resolved
+            jnp.asarray(False),
             finite_in,
-            (
-                jnp.asarray(0),
-                frames0,
-                jnp.full((max_iterations,), nan),
-                jnp.full((max_iterations + 1,), nan),
-                jnp.full((max_iterations + 1,), nan),
-                (jnp.asarray(n), jnp.asarray(0), jnp.asarray(True)),  # step ranks, all resolved
-                jnp.asarray(False),
+        )
+        if final_pass:
+            lin0 = jax.eval_shape(lambda: kernels.linearise(frames0, P, T, noise))
+            init = batched_like(
                 finite_in,
-                jnp.asarray(False),  # finished: the last pass has linearised the final model
-                jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), lin0),
-            ),
-        )
-        k, frames, steps, dps, dRs, steps_ok, done, ok, _, lin = jax.lax.while_loop(
-            lambda c: ~c[8], body, init
-        )
+                head
+                + (
+                    jnp.asarray(False),  # finished: the last pass has linearised the final model
+                    jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), lin0),
+                ),
+            )
+            k, frames, steps, dps, dRs, steps_ok, done, ok, _, lin = jax.lax.while_loop(
+                lambda c: ~c[8], body, init
+            )
+        else:
+            k, frames, steps, dps, dRs, steps_ok, done, ok = jax.lax.while_loop(
+                lambda c: stepping_at(c[0], c[6], c[7], c[5][2]),
+                body,
+                batched_like(finite_in, head),
+            )
+            tool, _ = kernels.chain(frames, P)
+            Y, dp, dR = kernels.residual_and_metrics(T, tool)
+            if noise is not None:
+                Y = kernels.whiten(Y, T, noise)
+            dps = dps.at[k].set(dp)
+            dRs = dRs.at[k].set(dR)
+            empty = jnp.zeros((n, 0), dtype)  # no Jacobian: the rank is the steps'
+            lin = kernels.Linearisation(Y=Y.reshape(-1), DT=empty, delta_p=dp, delta_R=dR)
         rank_lo, rank_hi, resolved = steps_ok
         sol = _solution_at(
             frames,

@@ -223,7 +223,7 @@ def _solution_at(
     """
     from .linear import default_rcond
 
-    n = lin.DT.shape[0]
+    n = 6 * nominal.shape[-3]
     if rank is None:
         # The singular values of D~ (6m x n) are those of the triangular factor of its QR
         # decomposition (Householder, backward stable): an SVD of n x n instead of 6m x n.
@@ -231,7 +231,7 @@ def _solution_at(
         rc = default_rcond(lin.DT.dtype) if rcond is None else rcond
         rank = jnp.sum(s > rc * s[..., :1], axis=-1)
     else:
-        s = jnp.full((n,), jnp.nan, lin.DT.dtype)
+        s = jnp.full((n,), jnp.nan, lin.Y.dtype)
     return _assemble_solution(
         frames,
         nominal,
