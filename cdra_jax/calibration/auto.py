@@ -50,6 +50,7 @@ import scipy.integrate
 import scipy.stats
 
 from ..arm import Arm
+from .damped import levenberg_marquardt
 from .gauge import GaugeFix, correction, to_nominal_gauge
 from .linear import svd_rank
 from .model import NoiseModel
@@ -320,9 +321,14 @@ def calibrate_auto(
 
     record(np.zeros(n), math.nan)
     for rounds in range(1, MAX_ROUNDS + 1):
-        u, steps, converged_solve, finite = _levenberg_marquardt(
-            lin_u, u, max_iterations, lambda uu, st: record(B @ uu, st)
+        solved = levenberg_marquardt(
+            lin_u,
+            u,
+            max_steps=max_iterations,
+            rtol=1e-13,
+            on_accept=lambda uu, st: record(B @ uu, st),
         )
+        u, steps, converged_solve, finite = solved.u, solved.steps, solved.converged, solved.finite
         total_steps += steps
         if not finite:
             ok, result = False, "nonfinite"
@@ -423,49 +429,6 @@ def calibrate_auto(
         gauge=gauge,
         gauge_reference=gauge_reference,
     )
-
-
-def _levenberg_marquardt(f, u, max_iterations, on_accept):
-    """Minimise ``|r(u)|^2`` from ``u``; ``f(u) -> (r, J)``. Returns ``(u, steps, converged,
-    finite)``; ``on_accept(u, step_norm)`` after every accepted step."""
-    r, J = f(u)
-    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
-        return u, 0, False, False
-    cost = float(r @ r)
-    lam = 1e-6
-    steps = 0
-    for _ in range(max_iterations):
-        A = J.T @ J
-        g = J.T @ r
-        d = np.diag(A).copy()
-        d = np.where(d > 0, d, 1.0)
-        try:
-            du = -np.linalg.solve(A + lam * np.diag(d), g)
-        except np.linalg.LinAlgError:
-            lam *= 10.0
-            continue
-        Jd = J @ du
-        predicted = -(2.0 * float(r @ Jd) + float(Jd @ Jd))
-        small = np.max(np.abs(du), initial=0.0) <= 1e-12 * (1.0 + np.max(np.abs(u), initial=0.0))
-        if predicted <= 1e-13 * cost + 1e-300 or small:
-            return u, steps, True, True
-        r_new, J_new = f(u + du)
-        if not np.all(np.isfinite(r_new)):
-            lam *= 10.0
-            continue
-        cost_new = float(r_new @ r_new)
-        if cost_new < cost:
-            u, r, J, cost = u + du, r_new, J_new, cost_new
-            steps += 1
-            lam = max(lam / 3.0, 1e-12)
-            on_accept(u, float(np.linalg.norm(du)))
-            if not np.all(np.isfinite(J)):
-                return u, steps, False, False
-        else:
-            lam *= 8.0
-            if lam > 1e16:
-                return u, steps, True, True
-    return u, steps, False, True
 
 
 def _exact_scales(sp, sr, s_pts, pose_mask, seen) -> bool:

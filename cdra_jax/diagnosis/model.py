@@ -22,6 +22,7 @@ from jax import Array
 
 from ..arm import Arm
 from ..calibration import calibrate_paper
+from ..calibration.damped import levenberg_marquardt
 from ..calibration.observations import Observations, apply_parameters, stacked_residual
 from ..compilation import filter_jit
 from ..physics import Aux, Candidate, Features, corrected_tool_pose
@@ -112,10 +113,8 @@ def joint_refit(
     The frame errors and the selected candidate's parameters are refitted jointly; the other
     entries of ``y0`` stay fixed. Each step calls the compiled :func:`residual_and_jacobian`
     of the full extended model (compiled once for the whole diagnosis, whichever candidate is
-    selected) and solves the damped, column-scaled step ``[J D; sqrt(lam) I] dz = [-r; 0]``
-    by rank-revealing least squares (the frame errors have 2 unidentifiable directions). An
-    optimistix LM compiles its own program per problem, which costs most of a minute on two
-    CPU cores for this model; this loop adds no compile at all.
+    selected) inside :func:`cdra_jax.calibration.damped.levenberg_marquardt` (rank-revealing
+    steps: the frame errors have unidentifiable directions; no compilation of its own).
 
     Returns:
         ``(y, converged, steps)``.
@@ -123,35 +122,12 @@ def joint_refit(
     y = np.array(y0, float)
     dtype = jnp.asarray(problem.arm.frames).dtype
 
-    def evaluate(yy):
+    def evaluate(u):
+        yy = y.copy()
+        yy[free] = u
         r, J = residual_and_jacobian(jnp.asarray(yy, dtype), problem)
         return np.asarray(r, float), np.asarray(J, float)[:, free]
 
-    r, J = evaluate(y)
-    cost = float(r @ r)
-    norms = np.linalg.norm(J, axis=0)
-    scale = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 1.0)
-    lam = 1e-6
-    steps = 0
-    converged = False
-    for steps in range(1, max_steps + 1):  # noqa: B007
-        Js = J * scale
-        A = np.vstack([Js, np.sqrt(lam) * np.eye(Js.shape[1])])
-        b = np.concatenate([-r, np.zeros(Js.shape[1])])
-        dz = np.linalg.lstsq(A, b, rcond=1e-12)[0]
-        trial = y.copy()
-        trial[free] += scale * dz
-        r_t, J_t = evaluate(trial)
-        cost_t = float(r_t @ r_t)
-        if np.isfinite(cost_t) and cost_t <= cost:
-            small = cost - cost_t <= rtol * max(cost, 1e-300) or np.linalg.norm(dz) < 1e-10
-            y, r, J, cost = trial, r_t, J_t, cost_t
-            lam = max(lam / 10.0, 1e-12)
-            if small:
-                converged = True
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e12:
-                break
-    return y, converged, steps
+    sol = levenberg_marquardt(evaluate, y[free], max_steps=max_steps, rtol=rtol)
+    y[free] = sol.u
+    return y, sol.converged, sol.steps

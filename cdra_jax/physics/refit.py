@@ -39,6 +39,7 @@ from jax import Array
 
 from .. import lie
 from ..arm import Arm
+from ..calibration.damped import levenberg_marquardt
 from ..calibration.model import NoiseModel, residual_twist, tool_points, whitening
 from ..compilation import filter_jit
 from .base import Aux, Candidate, corrected_tool_pose
@@ -237,55 +238,34 @@ class EffectRefit:
 
 
 def _lm(y0, P, arm, cands, q, aux, data, scales, max_steps, rtol):
-    """Levenberg-Marquardt on ``y = y0 + P z``; returns ``(y, converged, history, r, J P)``."""
+    """Levenberg-Marquardt (:func:`cdra_jax.calibration.damped.levenberg_marquardt`) on
+    ``y = y0 + P z``; returns ``(y, converged, (step norms, dp, dR per step), r, J P)``."""
     dtype = jnp.asarray(arm.frames).dtype
-    y = np.array(y0, float)
+    y0 = np.array(y0, float)
     sc = jnp.asarray(scales, dtype)
 
-    def evaluate(yy):
-        r, J = _linearise(jnp.asarray(yy, dtype), arm, cands, q, aux, data, sc)
+    def evaluate(z):
+        r, J = _linearise(jnp.asarray(y0 + P @ z, dtype), arm, cands, q, aux, data, sc)
         return np.asarray(r, float), np.asarray(J, float) @ P
 
     def metrics(yy):
         return _deviation(_tool(jnp.asarray(yy, dtype), arm, cands, q, aux), data)
 
-    r, J = evaluate(y)
-    cost = float(r @ r)
-    norms = np.linalg.norm(J, axis=0)
-    scale = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 1.0)
-    lam = 1e-6
-    converged = False
     steps: list[float] = []
-    dp0, dR0 = metrics(y)
+    dp0, dR0 = metrics(y0)
     dps, dRs = [dp0], [dR0]
-    tries = 0
-    while len(steps) < max_steps and tries < 10 * max_steps:
-        tries += 1
-        Js = J * scale
-        A = np.vstack([Js, np.sqrt(lam) * np.eye(Js.shape[1])])
-        b = np.concatenate([-r, np.zeros(Js.shape[1])])
-        dz = np.linalg.lstsq(A, b, rcond=1e-12)[0]
-        step = P @ (scale * dz)
-        trial = y + step
-        r_t, J_t = evaluate(trial)
-        cost_t = float(r_t @ r_t)
-        if np.isfinite(cost_t) and cost_t <= cost:
-            small = cost - cost_t <= rtol * max(cost, 1e-300) or np.linalg.norm(dz) < 1e-12
-            y, r, J, cost = trial, r_t, J_t, cost_t
-            steps.append(float(np.linalg.norm(step)))
-            dp, dR = metrics(y)
-            dps.append(dp)
-            dRs.append(dR)
-            lam = max(lam / 10.0, 1e-12)
-            if small or cost == 0.0:
-                converged = True
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e12:  # no step decreases the cost: at the minimum to rounding
-                converged = True
-                break
-    return y, converged, (np.asarray(steps), np.asarray(dps), np.asarray(dRs)), r, J
+
+    def accepted(z, step_norm):
+        dp, dR = metrics(y0 + P @ z)
+        steps.append(step_norm)  # P has orthonormal columns: the same norm in y
+        dps.append(dp)
+        dRs.append(dR)
+
+    sol = levenberg_marquardt(
+        evaluate, np.zeros(P.shape[1]), max_steps=max_steps, rtol=rtol, on_accept=accepted
+    )
+    y = y0 + P @ sol.u
+    return y, sol.converged, (np.asarray(steps), np.asarray(dps), np.asarray(dRs)), sol.r, sol.J
 
 
 def _scaled_svd(J: np.ndarray, rcond: float):
