@@ -139,18 +139,22 @@ def time_jax(
 def _steady(call: Callable, n: int, repeats: int, compile_s: float, first_s: float) -> dict:
     """Median wall time of ``repeats`` calls of ``call()`` (a batch of ``n`` trials), as the
     result dict of :func:`time_jax` (``solution``: the last call's result)."""
-    times = []
+    times, cpu = [], []
     sol = None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         sol = call()
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     steady = statistics.median(times)
     return dict(
         compile_s=compile_s,
         first_call_s=first_s,
         steady_s=steady,
         trials_per_s=n / steady,
+        # CPU time of this process (all its threads) per trial: on a machine shared with other
+        # jobs a steadier measure of the work than the wall time.
+        cpu_us_per_trial=1e6 * statistics.median(cpu) / n,
         all_s=times,
         solution=sol,
     )
@@ -213,13 +217,20 @@ def time_jax_calls(solve: Callable, q: np.ndarray, T: np.ndarray, per_call: int)
 def time_per_trial(run_one: Callable[[int], dict], n: int) -> dict:
     """Run ``run_one(i)`` for ``i < n`` in chunks; median per-trial time over the chunks."""
     bounds = np.linspace(0, n, min(_N_CHUNKS, n) + 1).astype(int)
-    per_trial, outs = [], []
+    per_trial, cpu, outs = [], [], []
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         outs.extend(run_one(i) for i in range(a, b))
         per_trial.append((time.perf_counter() - t0) / (b - a))
+        cpu.append((time.process_time() - c0) / (b - a))
     med = statistics.median(per_trial)
-    return dict(per_trial_s=med, trials_per_s=1.0 / med, chunks_s=per_trial, outputs=outs)
+    return dict(
+        per_trial_s=med,
+        trials_per_s=1.0 / med,
+        cpu_us_per_trial=1e6 * statistics.median(cpu),
+        chunks_s=per_trial,
+        outputs=outs,
+    )
 
 
 # --------------------------------------------------------------------------- one run
@@ -326,8 +337,8 @@ def print_table(res: dict, n_base: int, n_trials: int) -> None:
     ref = res["numpy"]["trials_per_s"] if "numpy" in res else float("nan")
     w = max([10] + [len(k) for k in res])
     head = (
-        f"{'solver':{w}s} {'trials':>7s} {'us/trial':>9s} {'trials/s':>10s} {'vs numpy':>9s} "
-        f"{'compile s':>10s} "
+        f"{'solver':{w}s} {'trials':>7s} {'us/trial':>9s} {'cpu us':>7s} {'trials/s':>10s} "
+        f"{'vs numpy':>9s} {'compile s':>10s} "
         f"{'first s':>8s} {'conv':>5s} {'iters':>6s} {'d(base,tool) vs paper':>22s} "
         f"{'vs preset':>10s}"
     )
@@ -339,7 +350,8 @@ def print_table(res: dict, n_base: int, n_trials: int) -> None:
         comp = f"{r['compile_s']:10.2f}" if "compile_s" in r else f"{'-':>10s}"
         first = f"{r['first_call_s']:8.2f}" if "first_call_s" in r else f"{'-':>8s}"
         print(
-            f"{name:{w}s} {n:7d} {1e6 / r['trials_per_s']:9.1f} {r['trials_per_s']:10.1f} "
+            f"{name:{w}s} {n:7d} {1e6 / r['trials_per_s']:9.1f} "
+            f"{r.get('cpu_us_per_trial', float('nan')):7.1f} {r['trials_per_s']:10.1f} "
             f"{r['trials_per_s'] / ref:9.1f} "
             f"{comp} {first} {r['converged']:5.2f} {r['iterations_mean']:6.2f} "
             f"{r['maxdiff_vs_paper']:22.2e} {r['maxdiff_vs_preset']:10.2e}"
@@ -360,6 +372,8 @@ def summary_json(res: dict, args, n_base: int) -> dict:
     for name, r in res.items():
         out[f"trials_per_s_{name}"] = r["trials_per_s"]
         out[f"us_per_trial_{name}"] = 1e6 / r["trials_per_s"]
+        if "cpu_us_per_trial" in r:
+            out[f"cpu_us_per_trial_{name}"] = r["cpu_us_per_trial"]
         out[f"maxdiff_vs_paper_{name}"] = r["maxdiff_vs_paper"]
         out[f"maxdiff_vs_preset_{name}"] = r["maxdiff_vs_preset"]
         out[f"converged_{name}"] = r["converged"]
