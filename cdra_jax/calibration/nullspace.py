@@ -16,7 +16,9 @@ cancels the first block (exactly, not only to first order: ``M exp(xi) = exp(xi)
 
 * revolute about the unit axis ``a`` through the module origin (``R = exp(q hat(a))``,
   ``p = 0``): ``R v = v`` and ``R w = w`` for all ``q``, so ``xi`` in span ``{(a, 0), (0, a)}``:
-  translation along and rotation about the joint axis (2 directions);
+  translation along and rotation about the joint axis (2 directions). (For an axis through a
+  point ``c`` other than the origin, which the model's modules do not have, the rotation would
+  be the twist ``(c x a, a)``: conjugate by the translation to ``c``.);
 * prismatic along ``a`` (``R = I``, ``p = q a``): ``(v + q a x w, w) = (v, w)`` for all ``q``, so
   ``w`` parallel to ``a`` and ``v`` free: ``{(e_1, 0), (e_2, 0), (e_3, 0), (0, a)}`` (4);
 * spherical about the module origin (``p = 0``, every ``R``): ``v = w = 0`` (none).
