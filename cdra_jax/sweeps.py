@@ -72,7 +72,14 @@ from .calibration import (
     calibration_jacobian,
     deviation_metrics,
 )
-from .calibration.linear import default_rcond
+from .calibration.batching import chunked_vmap
+from .calibration.linear import (
+    RESOLVED_PIVOT,
+    STRUCTURAL_TOL,
+    default_rcond,
+    null_space_solve,
+)
+from .calibration.nullspace import null_basis, null_generators
 from .calibration.validation import MIN_POSES
 from .compilation import jit
 from .io.files import write_file_atomic, write_text_atomic
@@ -382,19 +389,51 @@ def _typed_block(path, first_line: int, rows: list[list[str]], idx: dict[str, in
 
 
 def _identifiable_error(arm_true: Arm, q: jax.Array, frames: jax.Array) -> tuple:
-    """Identified-minus-true frame errors projected on the identifiable subspace at the truth."""
+    """Identified-minus-true frame errors projected on the identifiable subspace at the truth.
+
+    The identifiable subspace is the row space of the Jacobian ``D`` at the truth for the
+    calibration states. Where the pose set loses only the structural directions (the generic
+    case) it is the complement of the analytic null space (:mod:`.calibration.nullspace`), and
+    the projection ``e - Z Z^T e`` needs no factorisation of ``D``; pose sets that lose more
+    (detected from the Cholesky factor of ``D^T D``, :func:`.calibration.linear.null_space_solve`)
+    are projected with the SVD of ``D``, as before, gathered into chunks of their own under
+    ``vmap`` (:func:`.calibration.batching.chunked_vmap`)."""
     e = error_twists(frames, arm_true.frames)  # (K+1, 6)
     _, after = chain(arm_true.frames, module_poses(arm_true, q))
     D = calibration_jacobian(after)
     D = D.reshape(-1, D.shape[-1])
-    # The right singular vectors and singular values of D are those of the triangular factor
-    # of its QR (D = Q R): an SVD of the n x n R instead of the 6m x n D (one pass cheaper).
-    R = jnp.linalg.qr(D, mode="r")
-    _, s, Vt = jnp.linalg.svd(R, full_matrices=False)
-    keep = s > default_rcond(D.dtype) * s[0]
-    coef = jnp.where(keep, Vt @ e.reshape(-1), 0.0)
-    pe = (Vt.T @ coef).reshape(e.shape)
+    modules, xi = null_generators(arm_true, D.dtype)
+    Z = null_basis(arm_true.frames, modules, xi)
+    pe = _project_identifiable(D, e.reshape(-1), Z).reshape(e.shape)
     return jnp.linalg.norm(pe), jnp.linalg.norm(pe[:, :3]), jnp.linalg.norm(pe[:, 3:])
+
+
+def _projection(use_svd, D, e, Z):
+    """``(projection of e on the row space of D, redo)``: analytic (``Z`` null) unless
+    ``use_svd`` (unbatched: a real branch), flagged for a redo where ``Z`` is not the whole
+    null space of ``D``."""
+
+    def svd(D, e, Z):
+        # The right singular vectors and singular values of D are those of the triangular
+        # factor of its QR (D = Q R): an SVD of the n x n R instead of the 6m x n D.
+        R = jnp.linalg.qr(D, mode="r")
+        _, s, Vt = jnp.linalg.svd(R, full_matrices=False)
+        keep = s > default_rcond(D.dtype) * s[0]
+        coef = jnp.where(keep, Vt @ e, 0.0)
+        return Vt.T @ coef, jnp.asarray(False)
+
+    def analytic(D, e, Z):
+        N = D.T @ D
+        _, smallest, structural = null_space_solve(N, jnp.zeros_like(e), Z)
+        generic = (smallest >= RESOLVED_PIVOT) & (structural <= STRUCTURAL_TOL)
+        return e - Z @ (Z.T @ e), ~generic
+
+    if not bool(jnp.finfo(D.dtype).eps < 1e-12):  # float32: the rank decision of the SVD
+        return svd(D, e, Z)
+    return jax.lax.cond(use_svd, svd, analytic, D, e, Z)
+
+
+_project_identifiable = chunked_vmap(_projection, 128, second_pass=True)
 
 
 def _trial_function(
