@@ -407,3 +407,34 @@ def test_predictive_stop_keeps_the_heldout_errors(cdra, table):
     for c in ("dp_heldout", "dR_heldout", "dp_verify", "param_err"):
         np.testing.assert_allclose(fast[c], table[c], rtol=0, atol=1e-8, err_msg=c)
     np.testing.assert_array_equal(fast["rank"], table["rank"])
+
+
+def test_identifiable_projection_analytic_and_svd(cdra):
+    """The parameter error's projection on the identifiable subspace: analytic (generic pose
+    sets) and by SVD (sets that lose more: repeated poses), mixed in one batch, both equal to
+    the SVD projection."""
+    from cdra_jax.arm import chain, module_poses
+    from cdra_jax.calibration import calibration_jacobian
+    from cdra_jax.calibration.nullspace import structural_null_space
+
+    qs = []
+    for seed in range(4):
+        q, _, _, _, _ = simulate_trial(jax.random.PRNGKey(seed), cdra, 8)
+        qs.append(np.tile(np.asarray(q[:2]), (4, 1)) if seed % 2 else np.asarray(q))
+    q = np.stack(qs)
+    e = np.random.default_rng(0).normal(size=(4, cdra.n_params)) * 0.01
+    Z = structural_null_space(cdra)
+
+    def jac(qq):
+        _, after = chain(cdra.frames, module_poses(cdra, qq))
+        D = calibration_jacobian(after)
+        return D.reshape(-1, D.shape[-1])
+
+    D = jax.vmap(jac)(q)
+    got = np.asarray(jax.jit(jax.vmap(sweeps._project_identifiable, (0, 0, None)))(D, e, Z))
+    for i in range(4):
+        _, s, Vt = np.linalg.svd(np.asarray(D[i]))
+        V = Vt[: int(np.sum(s > 1e-10 * s[0]))].T
+        np.testing.assert_allclose(got[i], V @ (V.T @ e[i]), atol=1e-12)
+    # the degenerate sets really lose more than the structural directions
+    assert np.linalg.matrix_rank(np.asarray(D[1]), tol=1e-8) < 22
