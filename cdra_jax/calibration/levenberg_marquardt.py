@@ -27,7 +27,12 @@ coordinates ``u`` (LM's steps are invariant under it, its max-norm stopping test
 rounding). As for the paper solver's steps, a trial whose data lose more directions than the
 structural ones (the Cholesky factor's eigenvalue bound below :data:`.linear.RESOLVED_PIVOT`)
 does not iterate and is solved again with the SVD basis, the trials to redo gathered into
-chunks of their own (:func:`.batching.two_pass`).
+chunks of their own (:func:`.batching.two_pass`). The analytic null space enters LM through
+this basis and not through its steps: optimistix' damped step ``(J^T J + lambda I) du = -J^T r``
+is already positive definite in ``u`` (the null directions have no coordinates), and
+its linear solve (``lineax``, a 22 x 22 Cholesky for the CDRA) is a small part of an LM step,
+whose cost is the exact Jacobian (the SE(3) left and right Jacobians per pose) and optimistix'
+trust-region bookkeeping.
 
 Damping. optimistix starts its trust region at a step size of 1, i.e. a damping
 ``lambda = 1`` on ``J^T J``, which in the rescaled coordinates (``J^T J ~= I``) halves the
