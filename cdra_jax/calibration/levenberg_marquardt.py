@@ -29,8 +29,9 @@ structural ones (the Cholesky factor's eigenvalue bound below :data:`.linear.RES
 does not iterate and is solved again with the SVD basis, the trials to redo gathered into
 chunks of their own (:func:`.batching.two_pass`). The analytic null space enters LM through
 this basis and not through its steps: optimistix' damped step ``(J^T J + lambda I) du = -J^T r``
-is already positive definite in ``u`` (the null directions have no coordinates), and
-its linear solve (``lineax``, a 22 x 22 Cholesky for the CDRA) is a small part of an LM step,
+is already positive definite in ``u`` (the null directions' columns of ``J B`` are zero, so
+only the damping acts on them and they never move), and its linear solve (``lineax``, a
+24 x 24 Cholesky for the CDRA) is a small part of an LM step,
 whose cost is the exact Jacobian (the SE(3) left and right Jacobians per pose) and optimistix'
 trust-region bookkeeping.
 
