@@ -138,18 +138,21 @@ class HeldOut:
         """``E|e|^2 = tr S`` under the model."""
         return float(np.sum(self.variance))
 
-    def p_value_sum_of_squares(self) -> float:
-        """``P(|e'|^2 >= |e|^2)`` under the model (needs ``ss_weights``). Unlike ``Q``, it is
-        not deflated when a model with many parameters predicts with a wide covariance."""
+    def p_value_sum_of_squares(self, tolerance: float = 1.0) -> float:
+        """``P(|e'|^2 >= |e|^2 / tolerance)`` under the model (needs ``ss_weights``): with a
+        ``tolerance`` above 1, whether the residual exceeds what a noise variance ``tolerance``
+        times the stated one explains. Unlike ``Q``, it is not deflated when a model with many
+        parameters predicts with a wide covariance."""
         if self.ss_weights is None:
             raise ValueError("held-out null weights were not computed (with_null=False)")
-        return quadratic_form_sf(self.sum_of_squares, self.ss_weights)
+        return quadratic_form_sf(self.sum_of_squares / tolerance, self.ss_weights)
 
-    def p_value(self) -> float:
-        """``P(Q' >= Q)`` under the model (needs ``weights``)."""
+    def p_value(self, tolerance: float = 1.0) -> float:
+        """``P(Q' >= Q / tolerance)`` under the model (needs ``weights``); see
+        :meth:`p_value_sum_of_squares` for ``tolerance``."""
         if self.weights is None:
             raise ValueError("held-out null weights were not computed (with_null=False)")
-        return quadratic_form_sf(self.statistic, self.weights)
+        return quadratic_form_sf(self.statistic / tolerance, self.weights)
 
 
 def heldout(r: np.ndarray, A: np.ndarray, fold: np.ndarray, *, with_null: bool = False) -> HeldOut:
