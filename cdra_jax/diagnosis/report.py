@@ -134,13 +134,19 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "repeats and the fit agree to rounding: exact data)"
             )
     parts.append(f"best candidate test p = {_p(t['candidates_min_p_holm'])} (Holm)")
+    tolerant = t["heldout_chi2"].get("p_value_tolerant")
+    if tolerant is not None:
+        k = t["heldout_chi2"]["noise_tolerance"]
+        parts.append(
+            f"held-out chi-square with {k:g}x the stated noise variance p = {_p(tolerant)}"
+        )
     verdict = (
         "leaves a misfit that the geometric model cannot explain"
         if d.mismatch
         else "leaves nothing the geometric model cannot explain"
     )
     lines.append(
-        f"The fit {verdict} (tests that need no noise value): {'; '.join(parts)}; combined "
+        f"The fit {verdict}: {'; '.join(parts)}; combined "
         f"p = {_p(d.p_value)} (alpha = {det['alpha']:g})."
     )
     ho = t["heldout_chi2"]
