@@ -151,6 +151,21 @@ _LONG_FIRST = (
 # a second or more of CPU (mostly compiling solvers; measured per test on the full suite). Every
 # module keeps at least one cheap test in the quick loop. CI runs them all.
 _SLOW: dict[str, tuple[str, ...]] = {
+    "tests/test_nullspace.py": (
+        "test_null_basis_is_the_svd_null_space_on_random_arms",
+        "test_null_space_solve_is_the_pseudo_inverse_step",
+        "test_null_space_basis_whitens_the_identifiable_subspace",
+        "test_null_space_solve_flags_data_rank_deficiency",
+    ),
+    "tests/test_model_effects.py": (
+        "test_calibrate_refines_the_effects_with_the_frames",
+        "test_calibrate_with_effects_from_points",
+        "test_calibrate_with_effects_refuses_rough_markers_and_robust_losses",
+        "test_sweep_refuses_and_plan_poses_notes_the_effects",
+        "test_a_load_dependent_effect_is_refined_in_the_gauge",
+        "test_validate_with_the_effects_reaches_the_noise_floor",
+        "test_simulate_writes_the_effects_and_their_columns",
+    ),
     "tests/test_markers.py": (
         "test_cli_simulate_calibrate_model_out_validate_on_markers",
         "test_the_guard_fires_when_an_unweighted_fit_is_worse_than_nominal",
@@ -187,6 +202,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_warning_rows_give_warning_lines_and_write_the_result",
         "test_cauchy_flags_the_corrupted_poses_in_summary_and_json",
         "test_reject_outliers_refits_without_the_flagged_poses",
+        "test_degenerate_pose_sets_warn_and_give_the_min_norm_answer",
     ),
     "tests/test_compilation.py": ("test_options_change_no_result_of_the_solvers",),
     "tests/test_concealed_generator.py": (
@@ -215,6 +231,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_a_candidate_that_fails_numerically_is_marked_failed_and_the_diagnosis_goes_on",
         "test_the_verdict_does_not_depend_on_the_noise_values",
         "test_a_shape_the_vocabulary_lacks_is_unattributed_where_it_lives_without_noise_values",
+        "test_bad_inputs_raise_clear_errors",
     ),
     "tests/test_float32_and_noise_checks.py": (
         "test_explicit_tolerances_still_apply_in_float32",
@@ -235,6 +252,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_bad_result_and_frame_error_files_name_the_file",
         "test_force_onto_a_fifo_is_refused_and_the_fifo_stays",
         "test_malformed_model_files_name_the_key",
+        "test_random_cell_values_are_read_or_named",
     ),
     "tests/test_implicit_derivatives.py": (
         "test_gradients_under_vmap_and_at_an_exact_fit",
@@ -262,6 +280,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_recovery_with_length_noise_is_within_its_predicted_uncertainty",
         "test_identifiability_report_names_the_gauge_freedoms",
         "test_noise_free_recovery_of_spherical_modules",
+        "test_calibrated_module_goes_into_the_arm_and_the_model_file",
     ),
     "tests/test_modules_statics.py": (
         "test_distribution_is_the_minimum_norm_one",
@@ -283,6 +302,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_backlash_and_drift_follow_their_auxiliaries",
         "test_bending_force_part_is_the_textbook_cantilever",
         "test_features_shapes_and_jacobians_finite",
+        "test_single_candidate_pure_function_matches_the_stacked_features",
     ),
     "tests/test_plausibility.py": (
         "test_no_typo_warning_on_clean_simulated_files",
@@ -306,6 +326,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_pose_repetition_gives_the_same_calibration",
         "test_rounding_bound_holds_for_random_roundings",
         "test_table_one_base_and_tool_exact",
+        "test_table_one_null_coordinates_are_in_the_printed_basis",
     ),
     "tests/test_robust.py": (
         "test_huber_solution_solves_the_reweighted_normal_equations",
@@ -323,6 +344,8 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_csv_round_trip_and_errors",
         "test_every_pose_a_sweep_draws_has_tension_closure",
         "test_table_layout",
+        "test_cli_and_plot",
+        "test_identifiable_projection_analytic_and_svd",
     ),
     "tests/test_uncertainty.py": (
         "test_covariance_is_pinv_of_whitened_information",
