@@ -650,6 +650,21 @@ def diagnose(
             refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(
                 forms, cols, *args, y_start=y1
             )
+        if _implausible(parameters):
+            # a richer or more flexible form that comes out physically impossible (a negative
+            # per-cable compliance) stands in for noise or for another shape: the plainest
+            # plausible form of the same effect at the same place is refitted instead
+            alternatives = [forms[0]] if len(forms) > 1 else []
+            alternatives += sorted(
+                (c for c in same if c is not forms[0] and not c.effect.refinement),
+                key=lambda c: -_score(r, np.hstack([D, J[:, cols[c]]]), fold)[0],
+            )
+            for alt in alternatives:
+                trial = _refit([alt], cols, *args)
+                if not _implausible(trial[1]):
+                    refit_info, parameters, ho1, p_after, y1, r1, J1 = trial
+                    forms, gains, best = [alt], [float(ho1.loglik - ho0.loglik)], alt
+                    break
         refit_info["forms"] = [
             {"variant": c.variant or None, "heldout_gain": g, "n_params": len(c.parameters(arm))}
             for c, g in zip(forms, gains, strict=True)
@@ -677,11 +692,7 @@ def diagnose(
             "p_value": struct1.p_value,
             "scale": _num(struct1.scale),
         }
-        implausible = [
-            f"{k} = {v.value:.3g} {v.unit} (physical range {v.range_low:g} to {v.range_high:g})"
-            for k, v in parameters.items()
-            if not v.plausible
-        ]
+        implausible = _implausible(parameters)
         if implausible:
             # never report an effect whose estimate is physically impossible (a negative
             # compliance): it stands in for something else
@@ -926,6 +937,15 @@ def _evaluate(c, Jc, r, D, UD, df_resid, floor2, fold, ho0) -> dict:
         # wide covariance gains likelihood without predicting better)
         merit = min(gain, 0.5 * (ho0.sum_of_squares - ho.sum_of_squares))
     return {"proj": proj, "F": Fv, "p": p, "df": df1, "gain": gain, "A": A, "merit": merit}
+
+
+def _implausible(parameters: dict[str, ParameterEstimate]) -> list[str]:
+    """The estimates whose 95 % interval lies outside the physical range, in words."""
+    return [
+        f"{k} = {v.value:.3g} {v.unit} (physical range {v.range_low:g} to {v.range_high:g})"
+        for k, v in parameters.items()
+        if not v.plausible
+    ]
 
 
 def _explained(excess_before: float, excess_after: float) -> float:
