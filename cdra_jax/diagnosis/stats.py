@@ -537,33 +537,19 @@ def _standardise(X: np.ndarray) -> np.ndarray:
     return (X - X.mean(axis=0)) / sd
 
 
-def cv_smoother(
-    X: np.ndarray,
-    row: np.ndarray,
-    entry: np.ndarray,
-    length_scale: float,
-    ridge: float = STRUCTURE_RIDGE,
-) -> np.ndarray:
-    """``H (N, N)``: the leave-one-row-out kernel-ridge prediction of each residual entry from
-    the same entry of the other rows, ``r_hat = H r``.
+def cv_smoother(X: np.ndarray, length_scale: float, ridge: float = STRUCTURE_RIDGE) -> np.ndarray:
+    """``H (n, n)``: the leave-one-out kernel-ridge prediction of a value at each of ``n`` rows
+    from the other rows, ``y_hat = H y``, over the rows' regressors ``X (n, d)`` (standardised)
+    with a Gaussian kernel of ``length_scale``.
 
-    Each entry kind (``entry``: the same entry of every row, e.g. a full pose's ``x`` or a
-    marker's ``z``) is smoothed on its own over the rows' regressors ``X (m, d)`` (standardised)
-    with a Gaussian kernel of ``length_scale``; the prediction of row ``i`` is
-    ``K_i,-i (K_-i,-i + ridge I)^-1 r_-i``.
+    With the smoother ``S = K (K + ridge I)^-1``, the exact leave-one-out prediction of kernel
+    ridge regression is ``y_hat_i = ((S y)_i - S_ii y_i) / (1 - S_ii)``.
     """
-    N = row.size
-    H = np.zeros((N, N))
-    for e in np.unique(entry):
-        idx = np.flatnonzero(entry == e)
-        Xe = X[row[idx]]
-        d2 = np.sum((Xe[:, None, :] - Xe[None, :, :]) ** 2, axis=-1)
-        K = np.exp(-0.5 * d2 / length_scale**2)
-        n = idx.size
-        for i in range(n):
-            tr = np.arange(n) != i
-            w = np.linalg.solve(K[np.ix_(tr, tr)] + ridge * np.eye(n - 1), K[tr, i])
-            H[idx[i], idx[tr]] = w
+    d2 = np.sum((X[:, None, :] - X[None, :, :]) ** 2, axis=-1)
+    K = np.exp(-0.5 * d2 / length_scale**2)
+    S = np.linalg.solve(K + ridge * np.eye(K.shape[0]), K).T  # K (K + ridge I)^-1 (symmetric)
+    d = np.diag(S).copy()
+    H = (S - np.diag(d)) / (1.0 - d)[:, None]
     return H
 
 
@@ -586,7 +572,8 @@ def structure_test(
     (module states, time, ...), ``groups (d,)`` which group each belongs to (a module's state
     entries together); ``row`` and ``entry`` each entry's row and kind. For each group and
     length scale, with ``H`` the leave-one-row-out smoother on that group's regressors
-    (:func:`cv_smoother`), the statistic is the fraction of the residual it predicts,
+    (:func:`cv_smoother`, applied to each entry kind over the rows that measure it), the
+    statistic is the fraction of the residual it predicts,
     ``T = (|r|^2 - |r - H r|^2) / |r|^2``: a ratio of quadratic forms that does not depend on
     the noise scale. Under the null (no structure: ``r = (I - U U^T) e`` with ``e`` white noise
     of any scale) its distribution is known exactly and sampled (seeded Monte Carlo). Unlike a
@@ -605,16 +592,29 @@ def structure_test(
     E = E - (E @ U) @ U.T  # null residuals: white noise projected off the fitted columns
     en = np.sum(E * E, axis=1)
     rr = float(r @ r)
+    # Each entry kind is smoothed over its own rows: the quadratic form is block diagonal, one
+    # block per kind (kinds measured in the same rows share the smoother).
+    kinds = [np.flatnonzero(entry == e) for e in np.unique(entry)]
     best: Structure | None = None
     group_p = np.ones(int(np.max(groups)) + 1)
     for g in names:
         Zg = Z[:, groups == g]
         for s in scales:
-            H = cv_smoother(Zg, row, entry, s)
-            A = H + H.T - H.T @ H
-            gain = float(r @ A @ r)
+            gain = 0.0
+            Tn_num = np.zeros(draws)
+            cache: dict[bytes, np.ndarray] = {}
+            for idx in kinds:
+                rows_k = row[idx]
+                key = rows_k.tobytes()
+                if key not in cache:
+                    H = cv_smoother(Zg[rows_k], s)
+                    cache[key] = H + H.T - H.T @ H
+                A = cache[key]
+                gain += float(r[idx] @ A @ r[idx])
+                Ek = E[:, idx]
+                Tn_num += np.sum((Ek @ A) * Ek, axis=1)
             T = gain / rr if rr > 0 else 0.0
-            Tn = np.sum((E @ A) * E, axis=1) / en
+            Tn = Tn_num / en
             p = min(1.0, len(scales) * (1.0 + float(np.sum(Tn >= T))) / (draws + 1.0))
             group_p[g] = min(group_p[g], p)
             if best is None or p < best.p_value:
