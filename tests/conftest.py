@@ -34,7 +34,7 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 
-_RSS_LIMIT_BYTES = 1_200_000_000
+_RSS_LIMIT_BYTES = 700_000_000
 """A worker drops its compiled programs after a module once its resident memory exceeds this."""
 
 
