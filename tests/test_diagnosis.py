@@ -424,10 +424,10 @@ def test_point_data_through_the_cli(tmp_path, capsys):
 
 
 def test_gravity_turns_with_the_registered_base_frame():
-    from cdra_jax import lie
+    from cdra_jax import default_arm, lie
     from cdra_jax.diagnosis.core import _gravity_in_fit_frame
 
-    arm = base().arm
+    arm = default_arm()
     turn = np.asarray(lie.from_xyz_rotvec(np.array([400.0, 0, 0]), np.array([np.pi / 2, 0, 0])))
     frames = np.asarray(arm.frames).copy()
     frames[0] = turn @ frames[0]
