@@ -4,6 +4,8 @@ and the solver paths built on it: the null-space step, the SVD redo where the da
 
 from __future__ import annotations
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -34,6 +36,25 @@ from cdra_jax.calibration.nullspace import (
 )
 
 KINDS = ("spherical", "revolute", "prismatic")
+
+
+@pytest.fixture(autouse=True)
+def _drop_the_programs_of_random_arms(request):
+    """Every random arm compiles programs no other test reuses: drop them after such a test
+    once the worker holds more than 1 GB (a module of them otherwise reached 3 GB)."""
+    yield
+    params = getattr(getattr(request.node, "callspec", None), "params", {})
+    if {"seed", "kinds"} & set(params) and _resident_bytes() > 1_000_000_000:
+        jax.clear_caches()
+
+
+def _resident_bytes() -> int:
+    """This process's resident memory (Linux ``/proc``; 0 where it cannot be read)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
 
 
 def random_arm(seed: int, kinds: tuple[str, ...] | None = None) -> arm_lib.Arm:
