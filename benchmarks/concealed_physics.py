@@ -5,7 +5,8 @@ simulation that shares no code and no functional form with the analyser's candid
 the nominal model TOML, unchanged, and a measurement CSV with the same columns whatever the
 effect (``pose``, module states, measured pose as xyz + rotation vector, ``time_s``,
 ``payload_kg``, ``approach.<module>``). The analyser (``cdra_jax.diagnosis.diagnose_files``)
-gets only those two files and the noise level. Recordings:
+gets only those two files and the noise level (with ``--noise-not-given``, not even that: it
+estimates the noise, as a user who does not know the device's noise runs it). Recordings:
 
 * effect recordings: for every noise level x pose count x effect size, ``--trials`` recordings
   whose hidden effect cycles through the vocabulary (joint_compliance, cable_elasticity,
