@@ -22,11 +22,12 @@ def register(subparsers) -> argparse.ArgumentParser:
         "diagnose",
         help="find the missing physics a geometric calibration leaves in the recordings",
         description=(
-            "Test whether the weighted geometric calibration of a model is consistent with the "
-            "measuring device's noise and, if not, which non-geometric effect (joint "
-            "compliance, cable elasticity, cable scale, backlash, periodic error, link "
-            "bending, thermal drift) and where explains the misfit; refit it and report the "
-            "physical parameters and the held-out improvement."
+            "Test whether a geometric calibration of a model leaves a misfit in the recordings "
+            "(full poses or points; the noise values are optional: the verdict rests on tests "
+            "that need none) and, if so, which non-geometric effect (joint compliance, cable "
+            "elasticity, cable scale, backlash, periodic error, link bending, thermal drift) "
+            "and where explains it; refit it, report the physical parameters and the held-out "
+            "improvement, and with --model-out write the model with the effect."
         ),
     )
     common.add_model_option(p)
