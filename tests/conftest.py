@@ -30,21 +30,13 @@ import gc  # noqa: E402
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
+from _memory import resident_bytes  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
 
 _RSS_LIMIT_BYTES = 700_000_000
 """A worker drops its compiled programs after a module once its resident memory exceeds this."""
-
-
-def _resident_bytes() -> int:
-    """This process's resident memory now (Linux ``/proc``; 0 where it cannot be read)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -60,7 +52,7 @@ def _free_compiled_programs_after_each_module():
     yield
     if os.environ.get("CDRA_TEST_KEEP_CACHES") == "1":
         return
-    if _resident_bytes() > _RSS_LIMIT_BYTES:
+    if resident_bytes() > _RSS_LIMIT_BYTES:
         jax.clear_caches()
         gc.collect()
 

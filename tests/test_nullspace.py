@@ -4,13 +4,12 @@ and the solver paths built on it: the null-space step, the SVD redo where the da
 
 from __future__ import annotations
 
-import os
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _memory import resident_bytes
 
 from cdra_jax import arm as arm_lib
 from cdra_jax import lie, simulation
@@ -44,17 +43,8 @@ def _drop_the_programs_of_random_arms(request):
     once the worker holds more than 1 GB (a module of them otherwise reached 3 GB)."""
     yield
     params = getattr(getattr(request.node, "callspec", None), "params", {})
-    if {"seed", "kinds"} & set(params) and _resident_bytes() > 1_000_000_000:
+    if {"seed", "kinds"} & set(params) and resident_bytes() > 1_000_000_000:
         jax.clear_caches()
-
-
-def _resident_bytes() -> int:
-    """This process's resident memory (Linux ``/proc``; 0 where it cannot be read)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
 
 
 def random_arm(seed: int, kinds: tuple[str, ...] | None = None) -> arm_lib.Arm:
