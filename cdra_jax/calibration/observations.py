@@ -23,6 +23,7 @@ Layout of the residual vector: the ``6 m`` pose rows (pose by pose, ``(v, w)``),
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Protocol
 
 import equinox as eqx
 import jax
@@ -184,8 +185,18 @@ def whitened_residual(
     return stacked_residual(tool, xyz, obs, sigma_pos, sigma_rot, sigma_pt)
 
 
+class MeasuredRows(Protocol):
+    """What :func:`stacked_residual` reads of the measurements: :class:`Observations`, or any
+    object with these arrays (masks instead of missing values)."""
+
+    full_poses: Array  # (m, 4, 4) measured tool poses, the identity where pose_mask is false
+    pose_mask: Array  # (m,)
+    points: Array  # (m, P, 3) measured points (mm), zero where not seen
+    seen: Array  # (m, P)
+
+
 def stacked_residual(
-    tool: Array, xyz: Array, obs: Observations, sigma_pos: Array, sigma_rot: Array, sigma_pt: Array
+    tool: Array, xyz: Array, obs: MeasuredRows, sigma_pos: Array, sigma_rot: Array, sigma_pt: Array
 ) -> Array:
     """The stacked whitened residual ``(6 m + 3 m P,)`` of model tool poses ``tool (m, 4, 4)``
     (world frame, mm) and tool-frame points ``xyz (P, 3)`` (mm) against ``obs`` (standard

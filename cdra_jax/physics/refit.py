@@ -40,7 +40,8 @@ from jax import Array
 from .. import lie
 from ..arm import Arm
 from ..calibration.damped import levenberg_marquardt
-from ..calibration.model import NoiseModel, residual_twist, tool_points, whitening
+from ..calibration.model import NoiseModel, residual_twist, tool_points
+from ..calibration.observations import stacked_residual
 from ..compilation import filter_jit
 from .base import Aux, Candidate, corrected_tool_pose
 from .model import model_effects, model_features, with_effects
@@ -81,14 +82,15 @@ class RefitData(eqx.Module):
     """Measured full poses and points of a refit, without missing values (masks instead).
 
     Attributes:
-        full: ``(m, 4, 4)`` measured tool poses; the identity where ``pose_mask`` is false.
+        full_poses: ``(m, 4, 4)`` measured tool poses; the identity where ``pose_mask`` is
+            false.
         pose_mask: ``(m,)`` rows with a measured full pose.
         points: ``(m, P, 3)`` measured points (mm); zero where not seen.
         seen: ``(m, P)`` which points were seen.
         xyz: ``(P, 3)`` the points' positions in the tool frame (mm; the origin is zero).
     """
 
-    full: Array
+    full_poses: Array
     pose_mask: Array
     points: Array
     seen: Array
@@ -124,12 +126,7 @@ def data_residual(
     """The stacked whitened residual ``(6 m + 3 m P,)`` of full poses and points against the
     extended model; ``scales = (s_pos mm, s_rot rad, s_pt mm)`` (module docstring)."""
     tool = extended_tool_pose(y, arm, candidates, q, aux)
-    G = whitening(data.full, NoiseModel(scales[0], scales[1]))
-    Y = jnp.einsum("mij,mj->mi", G, residual_twist(data.full, tool))
-    Y = jnp.where(data.pose_mask[:, None], Y, 0.0)
-    e = (data.points - tool_points(tool, data.xyz)) / scales[2]
-    e = jnp.where(data.seen[..., None], e, 0.0)
-    return jnp.concatenate([Y.reshape(-1), e.reshape(-1)])
+    return stacked_residual(tool, data.xyz, data, scales[0], scales[1], scales[2])
 
 
 @filter_jit
@@ -148,7 +145,7 @@ def raw_errors(tool, data: RefitData) -> tuple[np.ndarray, np.ndarray, np.ndarra
     rotation ``(m, 3)`` rad (the rotation vector of ``R_meas^T R_model``), points
     ``(m, P, 3)`` mm; NaN where not measured."""
     tool = np.asarray(tool, float)
-    full = np.asarray(data.full, float)
+    full = np.asarray(data.full_poses, float)
     mask = np.asarray(data.pose_mask)
     dpos = np.where(mask[:, None], full[:, :3, 3] - tool[:, :3, 3], np.nan)
     Rrel = np.swapaxes(full[:, :3, :3], -1, -2) @ tool[:, :3, :3]
