@@ -141,7 +141,7 @@ def test_every_pose_a_sweep_draws_has_tension_closure(cdra, table, monkeypatch):
 
 @pytest.mark.slow
 def test_split_over_two_cpu_devices_matches(tmp_path):
-    """A sweep (the paper solver, and LM) split over 2 CPU devices, started by
+    """A sweep of the paper solver split over 2 CPU devices, started by
     ``use_cpu_devices(2)`` in a fresh process, gives the rows of the same sweep on its first
     device alone (which reuses that device's compiled cells)."""
     out1, out2 = tmp_path / "one.csv", tmp_path / "two.csv"
@@ -155,7 +155,7 @@ def test_split_over_two_cpu_devices_matches(tmp_path):
         from cdra_jax.sweeps import run_sweep
         assert len(jax.devices()) == 2, jax.devices()
         assert cpu_pool_threads() > 2, cpu_pool_threads()
-        kw = dict(trials=3, solvers=["paper", "lm"], seed=7, m_verify=10, progress=False)
+        kw = dict(trials=3, solvers=["paper"], seed=7, m_verify=10, progress=False)
         t = run_sweep(default_arm(), {LEVELS!r}, [5], chunk=4, **kw)
         assert t.meta["devices"].count("cpu") == 2, t.meta["devices"]
         t.save({str(out2)!r})
@@ -166,7 +166,7 @@ def test_split_over_two_cpu_devices_matches(tmp_path):
     )
     run_on_two_cpu_devices(script, forced=False)
     one, two = read_sweep(out1), read_sweep(out2)
-    assert len(one) == len(two) == 2 * 2 * 3
+    assert len(one) == len(two) == 2 * 3
     assert one.meta["devices"].count("cpu") == 1
     _assert_same_rows(one, two)
 
