@@ -156,15 +156,15 @@ class Group:
 
     def finish(self, error: str | None = None) -> None:
         """A worker: report its end to process 0, done (``error=None``) or the error text."""
-        self.client.key_value_set(
-            self._key("end", self.process_id), "done" if error is None else f"error: {error}"
-        )
+        text = "done" if error is None else f"error: {error}"
+        self.client.key_value_set(self._key("end", self.process_id), text, allow_overwrite=True)
 
     def _beat(self) -> None:
-        key = self._key("beat", self.process_id)
+        key, count = self._key("beat", self.process_id), 0
         while not self._stop.wait(HEARTBEAT_SECONDS):
+            count += 1
             try:
-                self.client.key_value_increment(key, 1)
+                self.client.key_value_set(key, str(count), allow_overwrite=True)
             except Exception:  # the coordinator is gone: the main thread will learn it too
                 return
 
