@@ -20,6 +20,12 @@ timeout end with one ``error:`` line and exit status 1 (:func:`start_group`).
 
 Like :func:`jax.distributed.initialize`, :func:`start_group` must run before JAX starts a
 backend (the first computation or ``jax.devices()``).
+
+Cost: the processes other than 0 compile their programs in every run. JAX writes its persistent
+compilation cache from process 0 only, and a compiled program's cache key holds its device,
+which on process ``k > 0`` has another id than on one process (2048 for process 1 on a CPU), so
+their programs are never found in the cache. A group pays off when its chunks take longer than
+that compilation (measured in ``benchmarks/README.md``, section *Several processes*).
 """
 
 from __future__ import annotations
@@ -292,7 +298,8 @@ def start_group(
     """
     check_group(num_processes, process_id, coordinator)
     workers: list[subprocess.Popen] = []
-    if coordinator is None:
+    local = coordinator is None  # process 0 of a group on this machine: it starts the others
+    if local:
         if worker_command is None:
             raise ValueError(
                 "a group on this machine needs worker_command (the command line of process k; "
@@ -305,7 +312,8 @@ def start_group(
 
     if xla_bridge.backends_are_initialized():
         raise RuntimeError("start_group must run before JAX starts a backend (first computation)")
-    if worker_command is not None and process_id == 0:
+    if local:
+        assert worker_command is not None
         for k in range(1, num_processes):
             command = [str(a) for a in worker_command(k, coordinator)]
             # their report would repeat process 0's; their errors (stderr) are shown

@@ -91,6 +91,19 @@ def test_two_local_processes_give_the_one_process_table(tmp_path, one_process):
     assert not (tmp_path / ".t.csv.chunks").exists()
 
 
+@pytest.mark.slow
+def test_processes_started_by_hand_give_the_same_table(tmp_path, one_process):
+    out = tmp_path / "t.csv"
+    group = ["--processes", "2", "--coordinator", f"localhost:{free_port()}"]
+    worker = _start(out, *group, "--process-id", "1")
+    stdout = _sweep(out, *group, "--process-id", "0")
+    code, worker_out, stderr = _finish(worker)
+    assert code == 0, stderr[-3000:]
+    assert worker_out.strip() == "sweep: process 1 of 2 wrote its chunks"
+    assert "16 trials" in stdout
+    assert _rows(out) == one_process
+
+
 def _child(proc: subprocess.Popen) -> int:
     """The first child process of ``proc`` (the worker it started), waiting for it."""
     path = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
