@@ -630,9 +630,9 @@ def run_sweep(
             predicted below their tolerance (:func:`~cdra_jax.calibration.calibrate_paper`):
             about one step fewer per trial, frames and held-out errors within 1e-8 mm; the fit
             metrics of a noise-free trial then end near 1e-10 mm rather than 1e-13.
-        devices: devices to split every chunk over (default ``jax.devices()``); several CPU
-            devices need a large enough thread pool (:func:`cdra_jax.parallel.check_devices`,
-            ``ValueError`` otherwise).
+        devices: devices to split every chunk over (default ``jax.local_devices()``, those of
+            this process); several CPU devices need a large enough thread pool
+            (:func:`cdra_jax.parallel.check_devices`, ``ValueError`` otherwise).
         progress: a tqdm progress bar on a terminal, plain progress lines on stderr otherwise.
         checkpoint: a folder that keeps every finished chunk (created if missing). A sweep
             interrupted at any point and run again with the same arguments and the same
