@@ -237,3 +237,13 @@ def test_a_process_that_never_connects_ends_the_wait(tmp_path):
     code, _, stderr = _finish(proc)
     assert code == cli.EXIT_ERROR, stderr[-3000:]
     assert "error: process 0: the 2 processes did not all connect" in stderr, stderr[-3000:]
+
+
+def test_a_group_on_this_machine_shares_its_cores():
+    from cdra_jax.cli.sweep import TRIALS_PER_EXTRA_DEVICE, default_cpu_devices
+    from cdra_jax.parallel import schedulable_cores
+
+    cores = schedulable_cores()
+    assert default_cpu_devices(10**12, 2) == max(1, cores // 2)
+    assert default_cpu_devices(10**12, 4 * cores) == 1
+    assert default_cpu_devices(TRIALS_PER_EXTRA_DEVICE - 1, 1) == 1
