@@ -34,11 +34,14 @@ errors and standardised noise). Chunking and sharding therefore never change a r
 Execution: for each (pose count, solver) one function ``vmap``-ed over trials is jitted and
 applied chunk by chunk (``chunk`` trials at a time, the last chunk padded), so memory stays
 bounded by the chunk whatever the number of trials. Each chunk is split into one part per
-device of ``jax.devices()`` (:func:`cdra_jax.parallel.split_over_devices`), and the parts run at
-the same time, so a multi-GPU host, or a CPU presented as several devices
+device of ``jax.local_devices()`` (:func:`cdra_jax.parallel.split_over_devices`), and the parts
+run at the same time, so a multi-GPU host, or a CPU presented as several devices
 (:func:`cdra_jax.parallel.use_cpu_devices`, which ``cdra-jax sweep`` calls), uses all of them
-with the same code. Results are a tidy table, one row per trial (:class:`SweepTable`), saved as
-CSV or, where pyarrow is installed, Parquet.
+with the same code. The chunks can also be shared out over several processes, on this machine
+or several (:mod:`cdra_jax.distributed`; ``cdra-jax sweep --processes N``): chunk ``g`` goes
+to process ``g mod N``, each process writes its chunks to the checkpoint folder, and process 0
+gathers them into the same table as one process's. Results are a tidy table, one row per trial
+(:class:`SweepTable`), saved as CSV or, where pyarrow is installed, Parquet.
 """
 
 from __future__ import annotations
@@ -82,6 +85,7 @@ from .calibration.linear import (
 from .calibration.nullspace import null_basis, null_generators
 from .calibration.validation import MIN_POSES
 from .compilation import jit
+from .distributed import Group, GroupError
 from .io.files import write_file_atomic, write_text_atomic
 from .parallel import check_devices, split_over_devices
 from .simulation import StateSampler, sample_poses, simulate_trial
@@ -600,7 +604,8 @@ def run_sweep(
     devices: Sequence[jax.Device] | None = None,
     progress: bool = True,
     checkpoint: str | os.PathLike | None = None,
-) -> SweepTable:
+    group: Group | None = None,
+) -> SweepTable | None:
     """Monte-Carlo sweep over noise levels x pose counts x solvers x trials.
 
     Args:
@@ -625,9 +630,9 @@ def run_sweep(
             predicted below their tolerance (:func:`~cdra_jax.calibration.calibrate_paper`):
             about one step fewer per trial, frames and held-out errors within 1e-8 mm; the fit
             metrics of a noise-free trial then end near 1e-10 mm rather than 1e-13.
-        devices: devices to split every chunk over (default ``jax.devices()``); several CPU
-            devices need a large enough thread pool (:func:`cdra_jax.parallel.check_devices`,
-            ``ValueError`` otherwise).
+        devices: devices to split every chunk over (default ``jax.local_devices()``, those of
+            this process); several CPU devices need a large enough thread pool
+            (:func:`cdra_jax.parallel.check_devices`, ``ValueError`` otherwise).
         progress: a tqdm progress bar on a terminal, plain progress lines on stderr otherwise.
         checkpoint: a folder that keeps every finished chunk (created if missing). A sweep
             interrupted at any point and run again with the same arguments and the same
@@ -635,10 +640,18 @@ def run_sweep(
             same as an uninterrupted run's (each trial depends only on its key). A checkpoint
             of a sweep with other arguments is refused (``ValueError``); remove the folder once
             the table is saved (:func:`remove_checkpoint`).
+        group: run over the processes of a started :class:`cdra_jax.distributed.Group` (needs
+            ``checkpoint``, a folder all of them see). Chunk ``g`` (chunks numbered in table
+            order) is computed by process ``g mod N`` unless it is already in the checkpoint;
+            process 0 waits for the others' chunks and returns the table, the same as one
+            process's (every trial depends on its key alone); the other processes return
+            ``None`` once their chunks are written. :class:`cdra_jax.distributed.GroupError`
+            names the missing chunks when a process fails, dies or hangs.
 
     Returns:
         A :class:`SweepTable` with ``len(levels) * len(pose_counts) * len(solvers) * trials``
-        rows, ordered by m, solver, noise level, trial.
+        rows, ordered by m, solver, noise level, trial; ``None`` on the processes of a
+        ``group`` other than process 0.
 
     Raises:
         ValueError: naming the argument: ``noise_levels`` not a non-empty list of pairs, a
@@ -667,7 +680,12 @@ def run_sweep(
     for name, x in (("d_v", d_v), ("d_w", d_w)):
         if not isinstance(x, numbers.Real) or isinstance(x, bool) or not 0 <= x < math.inf:
             raise ValueError(f"{name} must be a non-negative number, got {x!r}")
-    devices = list(jax.devices() if devices is None else devices)
+    n_proc, me = (1, 0) if group is None else (group.num_processes, group.process_id)
+    if n_proc > 1 and checkpoint is None:
+        raise ValueError(
+            "a sweep over several processes needs checkpoint: the folder they all write to"
+        )
+    devices = list(jax.local_devices() if devices is None else devices)
     check_devices(devices)
     n_dev = len(devices)
     chunk = -(-int(chunk) // n_dev) * n_dev
@@ -675,7 +693,6 @@ def run_sweep(
     base = jax.random.PRNGKey(seed)
     cells = _cells(levels, pose_counts, solvers, int(trials))
     total = sum(len(c.trials) for c in cells)
-    parts: list[dict[str, np.ndarray]] = []
     t0 = time.perf_counter()
     store = None
     if checkpoint is not None:
@@ -698,16 +715,33 @@ def run_sweep(
         }
         if predictive_stop:  # only then: checkpoints of earlier sweeps stay valid
             settings["predictive_stop"] = True
+        if me != 0:
+            assert group is not None
+            group.wait_ready()  # process 0 has made the folder: mismatches are refused here
         store = _Checkpoint(Path(checkpoint), settings)
-    bar = _progress(total, progress)
+        if group is not None and me == 0:
+            group.announce_ready()
+    plan = [
+        (ci, start, min(start + chunk, len(cell.trials)))
+        for ci, cell in enumerate(cells)
+        for start in range(0, len(cell.trials), chunk)
+    ]
+    mine = [g for g in range(len(plan)) if g % n_proc == me]  # chunk g: process g mod N
+    done: dict[int, dict[str, np.ndarray]] = {}
+    bar = _progress(total if me == 0 else sum(plan[g][2] - plan[g][1] for g in mine), progress)
     try:
         for ci, cell in enumerate(cells):
-            n = len(cell.trials)
-            starts = range(0, n, chunk)
-            if store is not None and all(store.has(ci, start) for start in starts):
-                for start in starts:
-                    parts.append(store.load(ci, start))
-                    bar.update(min(start + chunk, n) - start)
+            todo = []
+            for g in mine:
+                c, start, stop = plan[g]
+                if c != ci:
+                    continue
+                if store is not None and store.has(ci, start):
+                    done[g] = store.load(ci, start)
+                    bar.update(stop - start)
+                else:
+                    todo.append(g)
+            if not todo:  # nothing left to compute here: no compilation
                 continue
             batched = _batched_trials(
                 cell.m,
@@ -720,12 +754,8 @@ def run_sweep(
                 max_iterations,
                 bool(predictive_stop),
             )
-            for start in starts:
-                stop = min(start + chunk, n)
-                if store is not None and store.has(ci, start):
-                    parts.append(store.load(ci, start))
-                    bar.update(stop - start)
-                    continue
+            for g in todo:
+                _, start, stop = plan[g]
                 pad = chunk - (stop - start)
                 tr = np.pad(cell.trials[start:stop], (0, pad), mode="edge")
                 lv = np.pad(cell.levels[start:stop], ((0, pad), (0, 0)), mode="edge")
@@ -739,10 +769,17 @@ def run_sweep(
                 out["solver"] = np.full(stop - start, cell.solver, dtype=object)
                 if store is not None:
                     store.save(ci, start, out)
-                parts.append(out)
+                done[g] = out
                 bar.update(stop - start)
+        if group is not None and me != 0:
+            group.finish()
+            return None
+        if n_proc > 1:
+            assert group is not None and store is not None
+            _gather(group, store, plan, cells, done, bar)
     finally:
         bar.close()
+    parts = [done[g] for g in range(len(plan))]
     cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     codes = cols.pop("result").astype(np.int32)
     cols["result"] = _result_names(codes)
@@ -761,6 +798,8 @@ def run_sweep(
         "seconds": f"{time.perf_counter() - t0:.3f}",
         "key": "fold_in(fold_in(PRNGKey(seed), m), trial)",
     }
+    if n_proc > 1:
+        meta["processes"] = str(n_proc)
     return SweepTable(columns, meta)
 
 
@@ -806,6 +845,49 @@ class _Checkpoint:
             np.savez(f, **arrays)
 
         write_file_atomic(self._path(cell, start), write, binary=True)
+
+
+def _gather(group: Group, store: _Checkpoint, plan, cells, done: dict, bar) -> None:
+    """Process 0: load the other processes' chunks (``plan[g]`` = ``(cell, start, stop)``)
+    into ``done`` as they appear in ``store``, advancing ``bar``; :class:`GroupError` naming
+    the missing chunks and their processes if a process fails, dies or hangs."""
+    others = [g for g in range(len(plan)) if g not in done]
+    seen: set[int] = set()
+
+    def count() -> int:
+        for g in others:
+            ci, start, stop = plan[g]
+            if g not in seen and store.has(ci, start):
+                seen.add(g)
+                bar.update(stop - start)
+        return len(seen)
+
+    def missing() -> str:
+        gone = [g for g in others if not store.has(*plan[g][:2])]
+        text = [
+            f"cell {plan[g][0]} (m={cells[plan[g][0]].m}, {cells[plan[g][0]].solver}) rows "
+            f"{plan[g][1]}-{plan[g][2] - 1} of process {g % group.num_processes}"
+            for g in gone[:8]
+        ]
+        more = f" and {len(gone) - 8} more" if len(gone) > 8 else ""
+        return f"{len(gone)} chunk(s) missing: " + "; ".join(text) + more
+
+    try:
+        group.wait_for_others(count)
+    except GroupError as e:
+        raise GroupError(
+            f"sweep over {group.num_processes} processes: {e}; {missing()}. The finished "
+            f"chunks are kept in {store.folder}: the same command resumes from them"
+        ) from None
+    count()
+    if len(seen) < len(others):
+        raise GroupError(
+            f"sweep over {group.num_processes} processes: every process reported done but "
+            f"{missing()} from {store.folder}: all processes must write to the same folder "
+            "(on several machines, a shared file system)"
+        )
+    for g in others:
+        done[g] = store.load(*plan[g][:2])
 
 
 def remove_checkpoint(folder: str | os.PathLike) -> None:

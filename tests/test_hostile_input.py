@@ -1044,6 +1044,14 @@ BOUND_OPTIONS: dict[str, tuple[list[str], str]] = {
         ["sweep", *"--noise-pos 0.1 --noise-rot 0.001 --poses 8 --trials 4".split()],
         "--cpu-devices",
     ),
+    "processes": (
+        ["sweep", *"--noise-pos 0.1 --noise-rot 0.001 --poses 8 --trials 4".split()],
+        "--processes",
+    ),
+    "timeout": (
+        ["sweep", *"--noise-pos 0.1 --noise-rot 0.001 --poses 8 --trials 4".split()],
+        "--timeout",
+    ),
     "count": (["plan-poses", "--out", "{d}/plan.csv"], "--count"),
     "pool": (["plan-poses", "--count", "4", "--out", "{d}/plan.csv"], "--pool"),
     "folds": (["diagnose", "--data", "{data}", "--out", "{d}/g.json"], "--folds"),

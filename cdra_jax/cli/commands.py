@@ -98,6 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version, usage errors
         return int(e.code or 0) if not isinstance(e.code, str) else common.EXIT_USAGE
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # e.g. to start the same command
     if not args.no_cache:
         try:
             enable_persistent_cache()

@@ -5,7 +5,7 @@ Usage::
     cdra-jax sweep --noise-pos 0.02,0.08,0.2 --noise-rot 0.001 --poses 5,10,15,30
         --solvers paper,weighted,lm --trials 1000 --out results.csv [--chunk 4096]
         [--plot fig.png] [--seed 0] [--model M] [--d-v 1 --d-w 0.05] [--verify 50]
-        [--no-progress] [--force]
+        [--no-progress] [--force] [--processes N [--coordinator HOST:PORT --process-id K]]
 
 A thin layer over :func:`cdra_jax.workflows.sweep`. Finished chunks are kept in a hidden folder
 beside the output (``.<out>.chunks``) until the table is written: after an interruption (Ctrl-C,
@@ -13,7 +13,10 @@ beside the output (``.<out>.chunks``) until the table is written: after an inter
 ``--noise-rot`` takes one value for all position levels or one per level; ``0`` and ``0`` is the
 noise-free level. Writes the tidy per-trial table (``.csv``, or ``.parquet`` where pyarrow is
 installed) and prints the median held-out accuracy per cell. Progress: a bar on a terminal, plain
-lines on stderr otherwise.
+lines on stderr otherwise. ``--processes N`` shares the chunks out over N processes
+(:func:`cdra_jax.distributed.start_group`): alone, it starts N - 1 more processes on this
+machine; with ``--coordinator`` and ``--process-id``, each process is started by hand (one per
+machine), all writing to the same chunk folder. The table is the same as one process's.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..distributed import DEFAULT_TIMEOUT, check_group
 from ..io.files import check_distinct_files, check_output
 from ..workflows.inputs import check_range
 from . import common
@@ -57,12 +61,13 @@ Every device compiles each cell once more (about 8 s for the weighted solver on 
 compilation is paid back after about 60,000 trials (``docs``: README, sweeps, "Both cores")."""
 
 
-def default_cpu_devices(trials_per_cell: int) -> int:
+def default_cpu_devices(trials_per_cell: int, processes: int = 1) -> int:
     """CPU devices for a sweep: one per :data:`TRIALS_PER_EXTRA_DEVICE` trials of a cell (at
-    least 1), at most one per core."""
+    least 1), at most one per core of the ``processes`` sharing this machine."""
     from ..parallel import schedulable_cores
 
-    return max(1, min(schedulable_cores(), trials_per_cell // TRIALS_PER_EXTRA_DEVICE))
+    cores = max(1, schedulable_cores() // processes)
+    return max(1, min(cores, trials_per_cell // TRIALS_PER_EXTRA_DEVICE))
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -116,6 +121,34 @@ def register(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="no progress (default: a bar on a terminal, plain lines on stderr otherwise)",
     )
+    p.add_argument(
+        "--processes",
+        metavar="N",
+        type=int,
+        default=1,
+        help="share the chunks out over N processes (default 1); alone, it starts N - 1 more "
+        "on this machine; with --coordinator and --process-id, start each process yourself",
+    )
+    p.add_argument(
+        "--coordinator",
+        metavar="HOST:PORT",
+        help="address of process 0 and a free port on it, the same for every process of a "
+        "group started by hand (several machines: the output folder must be shared)",
+    )
+    p.add_argument(
+        "--process-id",
+        metavar="K",
+        type=int,
+        help="this process's number in a group started by hand, 0 .. N-1 (0 writes the table)",
+    )
+    p.add_argument(
+        "--timeout",
+        metavar="S",
+        type=float,
+        default=DEFAULT_TIMEOUT,
+        help="with --processes: seconds to wait for all processes to connect, and for the next "
+        f"finished chunk of another process, before giving up ({DEFAULT_TIMEOUT:g})",
+    )
     common.add_force_option(p)
     p.set_defaults(func=run)
     return p
@@ -128,8 +161,13 @@ def run(args: argparse.Namespace) -> int:
         check_range(flag, n)
     if args.cpu_devices is not None:
         check_range("--cpu-devices", args.cpu_devices)
-    for flag, v in (("--d-v", args.d_v), ("--d-w", args.d_w)):
+    for flag, v in (("--d-v", args.d_v), ("--d-w", args.d_w), ("--timeout", args.timeout)):
         check_range(flag, v)
+    check_range("--processes", args.processes)
+    flags = {"num_processes": "--processes", "process_id": "--process-id"}
+    check_group(
+        args.processes, args.process_id, args.coordinator, flags | {"coordinator": "--coordinator"}
+    )
     out = Path(args.out)
     if out.suffix.lower() not in (".csv", ".parquet"):
         raise ValueError(f"{out}: --out must end in .csv or .parquet")
@@ -143,13 +181,14 @@ def run(args: argparse.Namespace) -> int:
 
     # Before JAX starts: every core as a CPU device (no effect on a GPU host's devices). Called
     # from a process where JAX already runs (e.g. a notebook), the default keeps its devices.
-    if args.cpu_devices is not None:
-        use_cpu_devices(args.cpu_devices)
-    else:
-        try:
-            use_cpu_devices(default_cpu_devices(args.trials * len(args.noise_pos)))
-        except RuntimeError:
-            pass
+    # A group on this machine (--processes alone) shares its cores among the processes.
+    local = args.processes if args.coordinator is None else 1
+    devices = args.cpu_devices or default_cpu_devices(args.trials * len(args.noise_pos), local)
+    try:
+        use_cpu_devices(devices)
+    except RuntimeError:
+        if args.cpu_devices is not None:
+            raise
     jax.config.update("jax_enable_x64", True)
     from ..io import save_figure_atomic
     from ..sweeps import remove_checkpoint
@@ -157,7 +196,16 @@ def run(args: argparse.Namespace) -> int:
     from ..workflows.inputs import check_seed
 
     checkpoint = out.parent / f".{out.name}.chunks"
-    if checkpoint.is_dir():
+    argv = getattr(args, "argv", None)  # the command line, set by cdra_jax.cli.main
+
+    def worker_command(k: int, coordinator: str) -> list[str]:
+        """The same command as process ``k`` of the group on this machine."""
+        assert argv is not None
+        group = ["--process-id", str(k), "--coordinator", coordinator]
+        cpu = ["--cpu-devices", str(devices), "--no-progress"]
+        return [sys.executable, "-m", "cdra_jax.cli", *argv, *group, *cpu]
+
+    if checkpoint.is_dir() and not args.process_id:
         done = len(list(checkpoint.glob("*.npz")))
         print(f"sweep: resuming from {done} finished chunk(s) in {checkpoint}", file=sys.stderr)
     result = sweep(
@@ -174,7 +222,15 @@ def run(args: argparse.Namespace) -> int:
         verify=args.verify,
         progress=not args.no_progress,
         checkpoint=checkpoint,
+        processes=args.processes,
+        process_id=args.process_id,
+        coordinator=args.coordinator,
+        worker_command=worker_command if argv is not None else None,
+        timeout=args.timeout,
     )
+    if result is None:  # another process than 0 of a group: its chunks are in the folder
+        print(f"sweep: process {args.process_id} of {args.processes} wrote its chunks")
+        return common.EXIT_OK
     result.save(out, force=args.force)
     remove_checkpoint(checkpoint)
     lines = [result.report(), common.wrote(out)]

@@ -36,6 +36,8 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "pool": (4, 1_000_000),
     "folds": (2, 100),
     "cpu_devices": (1, 1024),
+    "processes": (1, 1024),
+    "timeout": (1.0, 1e6),
     "noise_pos": (1e-9, 1e6),
     "noise_rot": (1e-12, 3.2),
     "d_v": (0.0, 1e6),

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from matplotlib.figure import Figure
 
+from ..distributed import DEFAULT_TIMEOUT, check_group, start_group
 from ..plots import plot_sweep_figure
 from ..sweeps import SweepTable, parse_noise_levels, run_sweep
 from .inputs import Model, check_range, check_seed, resolve_arm
@@ -99,7 +100,12 @@ def sweep(
     checkpoint: str | os.PathLike | None = None,
     model_label: str | None = None,
     predictive_stop: bool = False,
-) -> SweepRun:
+    processes: int = 1,
+    process_id: int | None = None,
+    coordinator: str | None = None,
+    worker_command: Callable[[int, str], Sequence[str]] | None = None,
+    timeout: float = DEFAULT_TIMEOUT,
+) -> SweepRun | None:
     """Monte-Carlo sweep of the calibration's accuracy over noise levels, pose counts, solvers.
 
     Args:
@@ -120,28 +126,34 @@ def sweep(
         model_label: name of the model in the table's metadata.
         predictive_stop: the paper and weighted solvers stop a step earlier (see
             :func:`cdra_jax.sweeps.run_sweep`).
+        processes: processes sharing the chunks (1: this one alone). More need
+            ``checkpoint`` (the folder they all write to) and must start before JAX runs
+            anything in this process (:func:`cdra_jax.distributed.start_group`): either each
+            is started by hand with the same ``coordinator`` (``HOST:PORT`` of process 0) and
+            its ``process_id``, or neither is given and this process starts the others on this
+            machine, running ``worker_command(k, coordinator)``. The table is the same as one
+            process's.
+        process_id, coordinator, worker_command: see ``processes``.
+        timeout: seconds to wait for the other processes to connect, and on process 0 for
+            their next finished chunk, before giving up
+            (:class:`cdra_jax.distributed.GroupError` naming the missing chunks).
+
+    Returns:
+        The finished sweep; ``None`` on a process other than process 0 of a group (its
+        chunks are in ``checkpoint``).
     """
+    check_range("processes", processes)
+    check_range("timeout", timeout)
+    check_group(processes, process_id, coordinator)
+    if processes > 1 and checkpoint is None:
+        raise ValueError("processes > 1 needs checkpoint: the folder all processes write to")
     for flag, n in (("trials", trials), ("verify", verify), ("chunk", chunk)):
         check_range(flag, n)
     check_range("d_v", d_v)
     check_range("d_w", d_w)
     check_seed(seed)
     levels = parse_noise_levels(noise_pos, noise_rot)
-    arm, model_label = resolve_arm(model, model_label)
-    if arm.effects:
-        raise ValueError(
-            f"model {model_label}: the sweep simulates and calibrates the fixed frames alone; "
-            "the model's [[effects]] ("
-            + ", ".join(e.label for e in arm.effects)
-            + ") are not part of it. Sweep the geometric model (the same file without "
-            "[[effects]]), or study the effects with simulate + calibrate"
-        )
-    table = run_sweep(
-        arm,
-        levels,
-        poses,
-        solvers,
-        trials,
+    kwargs: dict[str, Any] = dict(
         seed=seed,
         chunk=chunk,
         d_v=d_v,
@@ -151,5 +163,37 @@ def sweep(
         checkpoint=checkpoint,
         predictive_stop=predictive_stop,
     )
+    if processes == 1:
+        return _sweep(model, model_label, levels, poses, solvers, trials, kwargs)
+    group = start_group(
+        processes, process_id, coordinator, worker_command=worker_command, timeout=timeout
+    )
+    ok = False
+    try:
+        run = _sweep(model, model_label, levels, poses, solvers, trials, kwargs | {"group": group})
+        ok = True
+        return run
+    except BaseException as e:
+        if group.process_id != 0:  # process 0 names this process and its error
+            group.finish(error=str(e).splitlines()[0] if str(e) else type(e).__name__)
+        raise
+    finally:
+        group.close(ok=ok)
+
+
+def _sweep(model, model_label, levels, poses, solvers, trials, kwargs) -> SweepRun | None:
+    """:func:`run_sweep` on the resolved model (``kwargs``: its keyword arguments)."""
+    arm, model_label = resolve_arm(model, model_label)
+    if arm.effects:
+        raise ValueError(
+            f"model {model_label}: the sweep simulates and calibrates the fixed frames alone; "
+            "the model's [[effects]] ("
+            + ", ".join(e.label for e in arm.effects)
+            + ") are not part of it. Sweep the geometric model (the same file without "
+            "[[effects]]), or study the effects with simulate + calibrate"
+        )
+    table = run_sweep(arm, levels, poses, solvers, trials, **kwargs)
+    if table is None:
+        return None
     table.meta["model"] = model_label
     return SweepRun(table, model_label)
