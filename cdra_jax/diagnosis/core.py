@@ -49,7 +49,7 @@ from ..calibration.observations import (
     row_layout,
 )
 from ..calibration.validation import MIN_POSES
-from ..io.measurements import Measurements
+from ..io.measurements import Measurements, aux_columns
 from ..physics import (
     PROBES,
     VOCABULARY,
@@ -561,13 +561,17 @@ def diagnose(
     for c, why in table:
         by_place.setdefault((c.name, c.location), []).append((c, why))
     rows: list[CandidateRow] = []
+    not_applicable: list[CandidateRow] = []  # skipped whatever the data: not for this arm
+    every_column = frozenset(aux_columns(arm))
     chosen: dict[tuple[str, str], Candidate] = {}
     group_p: dict[tuple[str, str], float] = {}
     for key, members in by_place.items():
         ok = [c for c, why in members if why is None]
         if not ok:
             c0, why0 = members[0]
-            rows.append(CandidateRow(key[0], key[1], len(c0.parameters(arm)), skipped=why0))
+            row = CandidateRow(key[0], key[1], len(c0.parameters(arm)), skipped=why0)
+            inapt = all(c.missing(arm, every_column) for c, _ in members)
+            (not_applicable if inapt else rows).append(row)
             continue
         seen = [c for c in ok if evals[c]["df"] > 0] or ok
         # The variant with the smallest p (ties: the largest gain), Bonferroni over the variants.
@@ -819,6 +823,10 @@ def diagnose(
             },
             "refit": refit_info or None,
             "probes": probe_rows,
+            "not_applicable": [
+                {"effect": r.effect, "location": r.location, "reason": r.skipped}
+                for r in not_applicable
+            ],
             "structure_by_location": structure_rows,
             "best_candidate": None if best is None else best.label,
             "location_source": location_source,
