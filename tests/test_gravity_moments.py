@@ -287,3 +287,29 @@ def test_a_concealed_joint_compliance_is_found_without_masses_and_clean_data_giv
     _, clean, _ = _tracker_recordings(0.0, seed=1)
     d0 = diagnose(arm, clean, noise)
     assert (d0.effect, d0.mismatch) == ("none", False), d0.report
+
+
+def test_what_cannot_apply_to_the_arm_is_named_once():
+    """Effects skipped for the same reason everywhere share one entry; a reason that holds at
+    some locations only names them (counted against all the effect's locations)."""
+    from types import SimpleNamespace
+
+    from cdra_jax.diagnosis.report import _skipped_text
+
+    def row(effect, loc, why):
+        return SimpleNamespace(effect=effect, location=loc, label=f"{effect}@{loc}", skipped=why)
+
+    rows = [
+        row(e, loc, f"module {loc!r} has no cables in the model")
+        for e in ("cable_elasticity", "cable_scale")
+        for loc in ("j1", "j2")
+    ] + [row("link_bending", "f2", "link 'f2' has zero length")]
+    assert _skipped_text(rows, {"cable_elasticity": 2, "cable_scale": 2, "link_bending": 4}) == [
+        "cable_elasticity, cable_scale at every location (no module has cables in the model)",
+        "link_bending@f2 (link 'f2' has zero length)",
+    ]
+    two = [row("link_bending", f, f"link {f!r} has zero length") for f in ("f1", "f2")]
+    assert _skipped_text(two, {"link_bending": 4}) == [
+        "link_bending@f1 (link 'f1' has zero length)",
+        "link_bending@f2 (link 'f2' has zero length)",
+    ]

@@ -243,7 +243,7 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         )
     skipped = _skipped_text(d.candidates)
     if skipped:
-        lines.append("Not tried (the data lack what they need): " + "; ".join(skipped) + ".")
+        lines.append("Not tried: " + "; ".join(skipped) + ".")
     inapt = [
         SimpleNamespace(**r, label=f"{r['effect']}@{r['location']}", skipped=r["reason"])
         for r in det.get("not_applicable") or ()
