@@ -277,6 +277,7 @@ def test_a_concealed_joint_compliance_is_found_without_masses_and_clean_data_giv
     assert d.heldout_before.delta_p_mm > 3 * floor
     assert d.heldout_after.delta_p_mm < 1.3 * floor
     assert all(v.plausible for v in d.parameters.values())
+    assert d.details["close_rivals"] == []  # these poses prefer the elbow clearly
     assert "cable" not in d.report.split("Not tried")[1].split("\n")[0]
     assert "Not for this arm: cable_elasticity, cable_scale" in d.report
     names = {(r.effect, r.location) for r in d.candidates}

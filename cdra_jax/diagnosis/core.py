@@ -91,6 +91,10 @@ noise is still seen where no structure test sees it. The plain chi-square (toler
 the stated values and is reported."""
 
 COS_INDISTINGUISHABLE = 0.98
+RIVAL_NATS = 3.0
+"""A significant candidate whose held-out log-likelihood gain comes within this many nats of
+the selected one's (a likelihood ratio under about 20) is named as nearly as well supported:
+these poses do not clearly prefer the selection over it."""
 REPEAT_TOL = 1e-6
 """Module states that agree within this (rad or mm, per entry) count as a repeated pose."""
 
@@ -726,6 +730,18 @@ def diagnose(
     elif mismatch:
         effect_name = "unattributed"
 
+    close_rivals = []
+    if located_in is not None and best is not None:
+        top = by_key[(best.name, best.location)].heldout_gain or 0.0
+        close_rivals = [
+            {"candidate": r.label, "heldout_gain": r.heldout_gain}
+            for r in rows
+            if not r.selected
+            and r.heldout_gain is not None
+            and r.heldout_gain >= top - RIVAL_NATS
+            and (r.p_value if r.p_value is not None else 1.0) < alpha
+        ]
+
     location_source = None if located_in is None else "candidate"
     structure_rows: list[dict] = []
     if effect_name == "unattributed":
@@ -829,6 +845,7 @@ def diagnose(
             ],
             "structure_by_location": structure_rows,
             "best_candidate": None if best is None else best.label,
+            "close_rivals": close_rivals,
             "location_source": location_source,
         },
     )

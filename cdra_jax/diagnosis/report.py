@@ -230,6 +230,17 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "or the effect is a stand-in for another one)."
             )
         row = next(c for c in d.candidates if c.selected)
+        rivals = det.get("close_rivals") or []
+        if rivals:
+            lines.append(
+                "Nearly as well supported on held-out poses: "
+                + ", ".join(
+                    f"{r['candidate']} (gain {r['heldout_gain']:.1f} against "
+                    f"{row.heldout_gain:.1f})"
+                    for r in rivals
+                )
+                + ": poses that separate them, or less noise, would tell which."
+            )
         if row.indistinguishable_from:
             lines.append(
                 "This pose set cannot tell it apart from: "
