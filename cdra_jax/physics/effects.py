@@ -334,8 +334,8 @@ class JointCompliance(ModuleEffect):
             how = {"lumped_axial": " about its axis", "lumped_transverse": " across its axis"}
             return (
                 f"the {location} module deflects{how.get(self.form, '')} under the gravity load "
-                "it carries (masses unknown: compliance x gravity moment products fitted, "
-                f"{len(values)} identifiable combinations): " + _lumped_words(values, "rad")
+                f"it carries (masses unknown: {len(values)} compliance x gravity moment "
+                "products fitted): " + _lumped_words(values, "rad")
             )
         parts = [f"{n.replace('_', ' ')} {_interval(values, n, 'rad/(N*mm)')}" for n in values]
         return f"the {location} module deflects under the gravity load it carries: " + "; ".join(
@@ -861,8 +861,8 @@ class LinkBending(Effect):
     def describe(self, location, values):
         if self.lumped:
             return (
-                f"the {location} link bends under gravity (masses unknown: "
-                f"{len(values)} combinations fitted): tip rotation under the weights "
+                f"the {location} link bends under gravity (masses unknown: {len(values)} "
+                "products fitted): tip rotation under the weights "
                 f"{_interval(values, 'weight_rotation', 'rad')}; under the moments "
                 + _lumped_words(
                     {k: v for k, v in values.items() if not k.startswith("weight_")}, "rad"
