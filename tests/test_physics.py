@@ -132,17 +132,26 @@ def test_skip_reasons_name_what_is_missing():
     reasons = {(c.name, c.location): why for c, why in candidates(b.arm, [])}
     assert "time_s" in reasons[("thermal_drift", "base")]
     massless = _replace_modules(b.arm, mass=None, com=None)
-    reasons = {(c.name, c.location): why for c, why in candidates(massless, [])}
-    assert "mass" in reasons[("joint_compliance", "shoulder")]
-    assert "mass" in reasons[("link_bending", "forearm")]
-    assert reasons[("cable_scale", "elbow")] is None
+    reasons = {(c.name, c.location, c.variant): why for c, why in candidates(massless, [])}
+    assert "mass" in reasons[("joint_compliance", "shoulder", "isotropic")]
+    assert "mass" in reasons[("link_bending", "forearm", "")]
+    assert reasons[("cable_scale", "elbow", "from_home")] is None
+    # without masses, the lumped gravity moments are fitted instead; with them, not tried
+    assert reasons[("joint_compliance", "shoulder", "lumped")] is None
+    assert reasons[("joint_compliance", "elbow", "lumped_axial")] is None
+    assert reasons[("link_bending", "forearm", "lumped")] is None
+    heavy = {(c.name, c.location, c.variant): why for c, why in candidates(b.arm, [])}
+    assert "masses" in heavy[("joint_compliance", "shoulder", "lumped")]
+    assert "masses" in heavy[("link_bending", "forearm", "lumped")]
     # with a payload column the loads exist again
-    reasons = {(c.name, c.location): why for c, why in candidates(massless, ["payload_kg"])}
-    assert reasons[("joint_compliance", "shoulder")] is None
+    reasons = {
+        (c.name, c.location, c.variant): why for c, why in candidates(massless, ["payload_kg"])
+    }
+    assert reasons[("joint_compliance", "shoulder", "isotropic")] is None
     cableless = _replace_modules(b.arm, cable_base=None, cable_platform=None, cable_offset=None)
-    reasons = {(c.name, c.location): why for c, why in candidates(cableless, [])}
-    assert "no cables" in reasons[("cable_elasticity", "wrist")]
-    assert "no cables" in reasons[("cable_scale", "shoulder")]
+    reasons = {(c.name, c.location, c.variant): why for c, why in candidates(cableless, [])}
+    assert "no cables" in reasons[("cable_elasticity", "wrist", "holding")]
+    assert "no cables" in reasons[("cable_scale", "shoulder", "from_home")]
     with pytest.raises(ValueError, match="unknown effect"):
         effect("gear_wobble")
 

@@ -49,7 +49,7 @@ from ..calibration.observations import (
     row_layout,
 )
 from ..calibration.validation import MIN_POSES
-from ..io.measurements import Measurements
+from ..io.measurements import Measurements, aux_columns
 from ..physics import (
     PROBES,
     VOCABULARY,
@@ -91,6 +91,10 @@ noise is still seen where no structure test sees it. The plain chi-square (toler
 the stated values and is reported."""
 
 COS_INDISTINGUISHABLE = 0.98
+RIVAL_NATS = 3.0
+"""A significant candidate whose held-out log-likelihood gain comes within this many nats of
+the selected one's (a likelihood ratio under about 20) is named as nearly as well supported:
+these poses do not clearly prefer the selection over it."""
 REPEAT_TOL = 1e-6
 """Module states that agree within this (rad or mm, per entry) count as a repeated pose."""
 
@@ -561,13 +565,17 @@ def diagnose(
     for c, why in table:
         by_place.setdefault((c.name, c.location), []).append((c, why))
     rows: list[CandidateRow] = []
+    not_applicable: list[CandidateRow] = []  # skipped whatever the data: not for this arm
+    every_column = frozenset(aux_columns(arm))
     chosen: dict[tuple[str, str], Candidate] = {}
     group_p: dict[tuple[str, str], float] = {}
     for key, members in by_place.items():
         ok = [c for c, why in members if why is None]
         if not ok:
             c0, why0 = members[0]
-            rows.append(CandidateRow(key[0], key[1], len(c0.parameters(arm)), skipped=why0))
+            row = CandidateRow(key[0], key[1], len(c0.parameters(arm)), skipped=why0)
+            inapt = all(c.missing(arm, every_column) for c, _ in members)
+            (not_applicable if inapt else rows).append(row)
             continue
         seen = [c for c in ok if evals[c]["df"] > 0] or ok
         # The variant with the smallest p (ties: the largest gain), Bonferroni over the variants.
@@ -722,6 +730,18 @@ def diagnose(
     elif mismatch:
         effect_name = "unattributed"
 
+    close_rivals = []
+    if located_in is not None and best is not None:
+        top = by_key[(best.name, best.location)].heldout_gain or 0.0
+        close_rivals = [
+            {"candidate": r.label, "heldout_gain": r.heldout_gain}
+            for r in rows
+            if not r.selected
+            and r.heldout_gain is not None
+            and r.heldout_gain >= top - RIVAL_NATS
+            and (r.p_value if r.p_value is not None else 1.0) < alpha
+        ]
+
     location_source = None if located_in is None else "candidate"
     structure_rows: list[dict] = []
     if effect_name == "unattributed":
@@ -819,8 +839,13 @@ def diagnose(
             },
             "refit": refit_info or None,
             "probes": probe_rows,
+            "not_applicable": [
+                {"effect": r.effect, "location": r.location, "reason": r.skipped}
+                for r in not_applicable
+            ],
             "structure_by_location": structure_rows,
             "best_candidate": None if best is None else best.label,
+            "close_rivals": close_rivals,
             "location_source": location_source,
         },
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -71,25 +72,37 @@ def _noise_check(d: Diagnosis, ho: dict) -> str:
     return text + ": consistent with the residuals."
 
 
-def _skipped_text(candidates) -> list[str]:
-    """One entry per skipped effect where every location was skipped for the same reason (an
-    arm without cables: "cable_elasticity (no module has cables in the model)"), else one per
-    candidate."""
+def _skipped_text(candidates, locations: dict[str, int] | None = None) -> list[str]:
+    """One entry per skipped effect where every location was skipped for the same reason
+    ("backlash at every location (no approach.<module> column in the measurements)"), else
+    one per candidate; effects skipped for the same reason at every location share an entry
+    ("cable_elasticity, cable_scale at every location (no module has cables in the model)").
+    ``locations``: how many locations each effect has (default: its rows here)."""
     by_effect: dict[str, list] = {}
     for c in candidates:
         by_effect.setdefault(c.effect, []).append(c)
-    out = []
+    out: list[str] = []
+    everywhere: dict[str, list[str]] = {}
     for effect, rows in by_effect.items():
         skipped = [c for c in rows if c.skipped]
         if not skipped:
             continue
-        generic = {c.skipped.replace(repr(c.location), "<module>") for c in skipped}
-        if len(skipped) == len(rows) and len(rows) > 1 and len(generic) == 1:
+        generic = {
+            c.skipped.replace(repr(c.location), "<module>").replace(
+                f"approach.{c.location}", "approach.<module>"
+            )
+            for c in skipped
+        }
+        n = (locations or {}).get(effect, len(rows))
+        if len(skipped) == n and n > 1 and len(generic) == 1:
             reason = generic.pop().replace("module <module> has no ", "no module has ")
-            out.append(f"{effect} at every location ({reason})")
+            everywhere.setdefault(reason, []).append(effect)
         else:
             out += [f"{c.label} ({c.skipped})" for c in skipped]
-    return out
+    return [
+        f"{', '.join(effects)} at every location ({reason})"
+        for reason, effects in everywhere.items()
+    ] + out
 
 
 def render_report(d: Diagnosis, best: Candidate | None) -> str:
@@ -217,6 +230,17 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "or the effect is a stand-in for another one)."
             )
         row = next(c for c in d.candidates if c.selected)
+        rivals = det.get("close_rivals") or []
+        if rivals:
+            lines.append(
+                "Nearly as well supported on held-out poses: "
+                + ", ".join(
+                    f"{r['candidate']} (gain {r['heldout_gain']:.1f} against "
+                    f"{row.heldout_gain:.1f})"
+                    for r in rivals
+                )
+                + ": poses that separate them, or less noise, would tell which."
+            )
         if row.indistinguishable_from:
             lines.append(
                 "This pose set cannot tell it apart from: "
@@ -231,4 +255,13 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
     skipped = _skipped_text(d.candidates)
     if skipped:
         lines.append("Not tried: " + "; ".join(skipped) + ".")
+    inapt = [
+        SimpleNamespace(**r, label=f"{r['effect']}@{r['location']}", skipped=r["reason"])
+        for r in det.get("not_applicable") or ()
+    ]
+    if inapt:
+        n: dict[str, int] = {}
+        for c in [*d.candidates, *inapt]:
+            n[c.effect] = n.get(c.effect, 0) + 1
+        lines.append("Not for this arm: " + "; ".join(_skipped_text(inapt, n)) + ".")
     return "\n".join(lines)

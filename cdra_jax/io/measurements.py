@@ -474,8 +474,13 @@ def _is_aux(name: str, arm: Arm) -> bool:
     return name.startswith("approach.") and name[len("approach.") :] in arm.module_names
 
 
+def aux_columns(arm: Arm) -> tuple[str, ...]:
+    """Every auxiliary column a measurement file of ``arm`` may have."""
+    return (*AUX_COLUMNS, *(f"approach.{m}" for m in arm.module_names))
+
+
 def _aux_text(arm: Arm) -> str:
-    return ", ".join([*AUX_COLUMNS, *(f"approach.{m}" for m in arm.module_names)])
+    return ", ".join(aux_columns(arm))
 
 
 def _columns_text(arm: Arm) -> str:

@@ -56,7 +56,7 @@ def total_mass(arm: Arm) -> float:
     return float(sum(0.0 if m.mass is None else m.mass for m in arm.modules))
 
 
-def _world_frames(arm: Arm, q: Array) -> tuple[Array, Array, Array]:
+def world_frames(arm: Arm, q: Array) -> tuple[Array, Array, Array]:
     """World poses of the tool ``(..., 4, 4)``, the module platforms and the module bases
     ``(..., K, 4, 4)``."""
     poses = module_poses(arm, q)
@@ -80,7 +80,7 @@ def gravity_torques(arm: Arm, q: ArrayLike, payload_kg: ArrayLike = 0.0) -> Arra
     if not jnp.issubdtype(q.dtype, jnp.floating):
         q = q.astype(jnp.asarray(arm.frames).dtype)
     dtype = q.dtype
-    tool, after, before = _world_frames(arm, q)
+    tool, after, before = world_frames(arm, q)
     mass, com = _masses(arm, dtype)
     g = jnp.asarray(arm.gravity, dtype)
     x = jnp.einsum("...kij,kj->...ki", after[..., :3, :3], com) + after[..., :3, 3]  # (..., K, 3)
@@ -131,7 +131,7 @@ def gravity_loads(arm: Arm, q: ArrayLike, payload_kg: ArrayLike = 0.0) -> Array:
             out.append(jnp.einsum("...i,i->...", tau[..., i, :], axis)[..., None])
         else:
             if force is None:
-                _, _, before = _world_frames(arm, q)
+                _, _, before = world_frames(arm, q)
                 force = jnp.einsum(
                     "...kji,...kj->...ki", before[..., :3, :3], _distal_weight(arm, q, payload_kg)
                 )

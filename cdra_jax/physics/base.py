@@ -121,6 +121,9 @@ def corrected_tool_pose(arm: Arm, q: ArrayLike, features: Features, theta: Array
     return tool
 
 
+ROUNDING = 1e-12
+"""A feature column this many times smaller than its effect's largest is rounding: zero."""
+
 # Auxiliary data handed to the effects: column name -> (m,) array (``time_s``, ``payload_kg``,
 # ``approach.<module>``, ...), as in :attr:`cdra_jax.io.Measurements.aux`.
 Aux = Mapping[str, ArrayLike]
@@ -196,12 +199,21 @@ class Candidate:
         return self.effect.missing(arm, self.location, frozenset(aux_names))
 
     def features(self, arm: Arm, q: ArrayLike, aux: Aux) -> Features:
+        """The effect's features, with every column at the rounding level of its largest
+        (:data:`ROUNDING`) set to exactly zero: a parameter this arm's geometry does not see
+        (the travel of a prismatic joint along a revolute axis produces no torque about it),
+        which a fit must leave alone rather than scale up from rounding noise."""
         q = jnp.asarray(q)
         f = self.effect.features(arm, q, aux, self.location)
         p = len(self.parameters(arm))
         if f.n_params != p:  # a bug in an effect, not a user error
             raise AssertionError(f"{self.label}: {f.n_params} feature columns for {p} parameters")
-        return f
+        parts = (f.state, f.module_twist, f.frame_deflection)
+        if p == 0:
+            return f
+        size = jnp.max(jnp.stack([jnp.abs(a).reshape(-1, p).max(axis=0) for a in parts]), axis=0)
+        seen = size > ROUNDING * jnp.max(size)
+        return Features(*(jnp.where(seen, a, 0.0) for a in parts))
 
     def tool_pose(self, arm: Arm, q: ArrayLike, aux: Aux, params: ArrayLike) -> Array:
         """The pure extended forward model: tool poses ``(m, 4, 4)`` with this effect's

@@ -1,7 +1,11 @@
 """The candidate physics vocabulary (design.md): seven effects, each a few physical parameters.
 
 Each effect maps the recorded data to per-pose corrections linear in its parameters (see
-:mod:`.base`); the tool pose is then the exact product of exponentials. Conventions: module
+:mod:`.base`); the tool pose is then the exact product of exponentials. The gravity effects
+have forms with the model's masses and, for arms whose model has none, forms in the lumped
+gravity moments that the data identify (:func:`.loads.moment_terms`: ``n`` is two per revolute
+joint beyond the location, three per spherical one, one per prismatic one, plus the location's
+own). Conventions: module
 states as in :mod:`cdra_jax.arm`; a module-platform rotation is left-multiplied in the module
 base frame, the frame of :mod:`cdra_jax.modules` (torques, structure matrix, length Jacobian).
 
@@ -10,7 +14,9 @@ effect              location        correction                                  
 ==================  ==============  ====================================================  ======
 joint_compliance    module          platform rotation ``c tau`` (spherical), about the    1 / 2
                                     axis ``c_a (a.tau)`` and across it ``c_t tau_perp``
-                                    (revolute, prismatic); ``tau``: gravity torque
+                                    (revolute, prismatic); ``tau``: gravity torque.
+                                    Without masses: ``c tau`` linear in the lumped        n
+                                    moments (compliance x weight x lever, rad each)
 cable_elasticity    module          state change ``c J^+ t``: stretch ``c t`` of each     1
                                     cable (``t``: holding tensions), least squares over
                                     the cables (``J``: length Jacobian)
@@ -20,8 +26,9 @@ backlash            module          ``q - approach * b``: lag of ``b`` per state
                                     against the last motion
 periodic_error      module          ``sum_k a_k sin(k q) + b_k cos(k q)`` per state       2 H dof
                                     entry, harmonics ``k = 1 .. H``
-link_bending        inner frame     cantilever tip deflection under gravity,              1
-                                    ``c = 1/(EI)`` (:mod:`.loads`)
+link_bending        inner frame     cantilever tip deflection under gravity,              2
+                                    ``c = 1/(EI)`` (:mod:`.loads`); without masses: the
+                                    weights' tip rotation and the lumped moments          1 + n
 thermal_drift       base            mount moved by ``v t`` and turned by ``w t``          6
 ==================  ==============  ====================================================  ======
 """
@@ -35,10 +42,22 @@ from jax import Array
 
 from ..arm import Arm, Module
 from ..modules.cables import cable_lengths, length_jacobian
-from ..modules.statics import distribute_tensions, gravity_loads, gravity_torques, module_floor
+from ..modules.statics import (
+    distribute_tensions,
+    gravity_loads,
+    gravity_torques,
+    module_floor,
+    world_frames,
+)
 from ..modules.tension import structure_matrix
 from .base import Aux, Effect, Features, ParameterSpec
-from .loads import bending_deflection
+from .loads import (
+    MomentTerm,
+    bending_deflection,
+    lumped_bending_deflection,
+    moment_terms,
+    moment_torques,
+)
 
 PAYLOAD = "payload_kg"
 TIME = "time_s"
@@ -63,6 +82,60 @@ def _payload(aux: Aux, q: Array) -> Array:
 
 def _distal_mass(arm: Arm, i: int) -> float:
     return float(sum(m.mass or 0.0 for m in arm.modules[i:]))
+
+
+LUMPED_MAX_RAD = 0.05
+"""Largest plausible rotation (rad) a lumped gravity moment causes: a deflection of ~3 degrees
+under the arm's own weight is not an elastic one."""
+
+
+def _moment_specs(arm: Arm, terms: tuple[MomentTerm, ...], what: str) -> tuple[ParameterSpec, ...]:
+    """Parameters of lumped gravity moments (:func:`.loads.moment_terms`): ``what`` deflects.
+
+    A body term's product has no checkable sign (a first moment points anywhere); a travel
+    term's is a compliance times a mass: never negative."""
+    out = []
+    for b, c in terms:
+        body = arm.modules[b].name
+        if c == "travel":
+            out.append(
+                ParameterSpec(
+                    f"travel_{body}",
+                    "rad/mm",
+                    0.0,
+                    LUMPED_MAX_RAD / 100.0,
+                    f"{what} per mm of travel of the prismatic module {body!r}: compliance x "
+                    f"weight of the bodies it carries (never negative)",
+                )
+            )
+            continue
+        axis = (
+            f"the {c} axis of the {body} platform"
+            if c in "xyz"
+            else f"direction {c} across the {body} joint axis"
+        )
+        out.append(
+            ParameterSpec(
+                f"moment_{body}_{c}",
+                "rad",
+                -LUMPED_MAX_RAD,
+                LUMPED_MAX_RAD,
+                f"{what} from the gravity moment (mass x lever) of the bodies from {body} on "
+                f"along {axis}, lever horizontal: compliance x weight x lever (a product; its "
+                "sign is not checkable)",
+            )
+        )
+    return tuple(out)
+
+
+def _lumped_words(values: Mapping[str, tuple[float, float, float]], unit: str) -> str:
+    """The three largest lumped products, in words."""
+    big = sorted(values, key=lambda n: -abs(values[n][0]))[:3]
+    more = len(values) - len(big)
+    units = {n: f"{unit}/mm" if n.startswith("travel_") else unit for n in big}
+    return "; ".join(f"{n} {_interval(values, n, units[n])}" for n in big) + (
+        f" (and {more} more)" if more > 0 else ""
+    )
 
 
 def _rotation_twist(w: Array) -> Array:
@@ -132,30 +205,57 @@ class JointCompliance(ModuleEffect):
     """Rotational deflection of a module's platform proportional to the gravity torque ``tau``
     it carries (about the module centre, :func:`cdra_jax.modules.statics.gravity_torques`).
 
-    Variants: ``"isotropic"``, the rotation ``c tau`` (spherical modules; 1 parameter), and
-    for revolute and prismatic modules ``c_a (a.tau) a + c_t (tau - (a.tau) a)`` about and
-    across the joint axis ``a`` (2 parameters); ``"per_axis"``, a diagonal compliance along the
-    platform's own axes (the moving link's principal axes: bending about x and y, torsion
-    about z), ``R diag(c) R^T tau`` with ``R`` the platform orientation (3 parameters);
-    ``"per_axis_quadratic"`` (a refinement, never tested alone), the second-order term of a
-    load-dependent stiffness, ``R diag(c2) R^T tau |tau|`` (rad/(N mm)^2; negative for a joint
-    that stiffens under load).
+    Variants with the model's masses: ``"isotropic"``, the rotation ``c tau`` (spherical
+    modules; 1 parameter), and for revolute and prismatic modules
+    ``c_a (a.tau) a + c_t (tau - (a.tau) a)`` about and across the joint axis ``a``
+    (2 parameters); ``"per_axis"``, a diagonal compliance along the platform's own axes (the
+    moving link's principal axes: bending about x and y, torsion about z), ``R diag(c) R^T tau``
+    with ``R`` the platform orientation (3 parameters); ``"per_axis_quadratic"`` (a refinement,
+    never tested alone), the second-order term of a load-dependent stiffness,
+    ``R diag(c2) R^T tau |tau|`` (rad/(N mm)^2; negative for a joint that stiffens under load).
+
+    Variants without masses (tried where no body distal to the module has a mass): the torque
+    is linear in the distal bodies' unknown first moments, so the deflection is linear in the
+    products compliance x weight x moment, lumped to the combinations gravity can tell apart
+    (:func:`.loads.moment_terms`; rad each): ``"lumped"`` (spherical modules) the rotation
+    ``c tau``; ``"lumped_axial"`` (revolute, prismatic) the rotation about the joint axis
+    ``c (a.tau) a``; ``"lumped_transverse"`` the rotation across it ``c (tau - (a.tau) a)``.
     """
 
     name = "joint_compliance"
-    needs = "masses (mass, com of the modules' bodies)"
+    needs = "masses (mass, com of the modules' bodies), or none: lumped gravity moments"
     summary = "rotational deflection of a module proportional to the gravity load it carries"
     MAX = 1e-5  # rad/(N mm): 33 mrad under the ~3.3 N m the CDRA shoulder carries
     TAU_SCALE = 1e3  # N mm: the load over which a plausible stiffness may double
 
-    FORMS = ("isotropic", "per_axis", "per_axis_quadratic")
+    FORMS = (
+        "isotropic",
+        "per_axis",
+        "per_axis_quadratic",
+        "lumped",
+        "lumped_axial",
+        "lumped_transverse",
+    )
     REFINEMENTS = ("per_axis_quadratic",)
 
     def __init__(self, form: str = "isotropic"):
         self._set_form(form)
 
+    @property
+    def lumped(self) -> bool:
+        return self.form.startswith("lumped")
+
+    def terms(self, arm: Arm, location: str) -> tuple[MomentTerm, ...]:
+        """The lumped gravity moments of a ``lumped*`` form at ``location``."""
+        i, _ = self.module(arm, location)
+        return moment_terms(arm, i, axial=self.form == "lumped_axial")
+
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
+        if self.lumped:
+            how = {"lumped_axial": " about its axis", "lumped_transverse": " across its axis"}
+            what = f"rotation of the {location} platform{how.get(self.form, '')}"
+            return _moment_specs(arm, self.terms(arm, location), what)
         spec = lambda n, d: ParameterSpec(n, "rad/(N*mm)", 0.0, self.MAX, d)
         if self.form == "per_axis_quadratic":
             return tuple(
@@ -181,35 +281,90 @@ class JointCompliance(ModuleEffect):
         )
 
     def missing(self, arm, location, aux_names):
-        i, _ = self.module(arm, location)
-        if _distal_mass(arm, i) <= 0.0 and PAYLOAD not in aux_names:
-            return f"no mass distal to module {location!r} in the model and no payload_kg column"
+        i, mod = self.module(arm, location)
+        if not self.lumped:
+            if _distal_mass(arm, i) <= 0.0 and PAYLOAD not in aux_names:
+                return (
+                    f"no mass distal to module {location!r} in the model and no payload_kg "
+                    "column (its lumped forms are tried instead)"
+                )
+            return None
+        if _distal_mass(arm, i) > 0.0:
+            return "the model has the masses: the forms with them are tried (more power)"
+        if (self.form == "lumped") != (mod.kind == "spherical"):
+            return f"not a form of a {mod.kind} module"
+        if self.form == "lumped_axial" and _axis_along_gravity(arm, i):
+            return (
+                f"the {location} joint axis stays parallel to gravity: gravity puts no torque "
+                "about it"
+            )
         return None
 
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
-        tau = gravity_torques(arm, q, _payload(aux, q))[:, i, :]  # (m, 3) N mm, base frame
-        if self.form in ("per_axis", "per_axis_quadratic"):
-            R = mod.pose(arm.split_state(q)[i])[:, :3, :3]
-            local = jnp.einsum("mji,mj->mi", R, tau)  # torque in the platform frame
-            cols = R * local[:, None, :]  # column c: R e_c (e_c . R^T tau)
-            if self.form == "per_axis_quadratic":
-                cols = cols * jnp.linalg.norm(tau, axis=-1)[:, None, None]
-        elif mod.kind == "spherical":
-            cols = tau[..., None]
+        if self.lumped:
+            before = _module_bases(arm, q)[:, i, :3, :3]
+            cols = jnp.einsum(
+                "mji,mjn->min", before, moment_torques(arm, q, self.terms(arm, location))
+            )
+            if self.form != "lumped":
+                a = jnp.asarray(mod.axis, q.dtype)
+                along = jnp.einsum("min,i->mn", cols, a)[:, None, :] * a[:, None]
+                cols = along if self.form == "lumped_axial" else cols - along
         else:
-            a = jnp.asarray(mod.axis, q.dtype)
-            along = jnp.einsum("mi,i->m", tau, a)[:, None] * a
-            cols = jnp.stack([along, tau - along], axis=-1)
+            tau = gravity_torques(arm, q, _payload(aux, q))[:, i, :]  # (m, 3) N mm, base frame
+            if self.form in ("per_axis", "per_axis_quadratic"):
+                R = mod.pose(arm.split_state(q)[i])[:, :3, :3]
+                local = jnp.einsum("mji,mj->mi", R, tau)  # torque in the platform frame
+                cols = R * local[:, None, :]  # column c: R e_c (e_c . R^T tau)
+                if self.form == "per_axis_quadratic":
+                    cols = cols * jnp.linalg.norm(tau, axis=-1)[:, None, None]
+            elif mod.kind == "spherical":
+                cols = tau[..., None]
+            else:
+                a = jnp.asarray(mod.axis, q.dtype)
+                along = jnp.einsum("mi,i->m", tau, a)[:, None] * a
+                cols = jnp.stack([along, tau - along], axis=-1)
         f = Features.zeros(arm, q.shape[0], cols.shape[-1], q.dtype)
         tw = f.module_twist.at[:, i].set(_rotation_twist(cols))
         return Features(f.state, tw, f.frame_deflection)
 
     def describe(self, location, values):
+        if self.lumped:
+            how = {"lumped_axial": " about its axis", "lumped_transverse": " across its axis"}
+            return (
+                f"the {location} module deflects{how.get(self.form, '')} under the gravity load "
+                f"it carries (masses unknown: {len(values)} compliance x gravity moment "
+                "products fitted): " + _lumped_words(values, "rad")
+            )
         parts = [f"{n.replace('_', ' ')} {_interval(values, n, 'rad/(N*mm)')}" for n in values]
         return f"the {location} module deflects under the gravity load it carries: " + "; ".join(
             parts
         )
+
+
+def _module_bases(arm: Arm, q: Array) -> Array:
+    """World poses ``(m, K, 4, 4)`` of the module base frames."""
+    return world_frames(arm, q)[2]
+
+
+def _axis_along_gravity(arm: Arm, i: int, tol: float = 1e-6) -> bool:
+    """Whether module ``i``'s axis is parallel to gravity in every pose: it is at the zero
+    state and every module before it only translates or turns about the vertical."""
+    q0 = jnp.zeros((1, arm.dof), jnp.asarray(arm.frames).dtype)
+    bases = _module_bases(arm, q0)[0]
+    g = jnp.asarray(arm.gravity, q0.dtype)
+    g = g / jnp.linalg.norm(g)
+
+    def vertical(k: int) -> bool:
+        a = bases[k, :3, :3] @ jnp.asarray(arm.modules[k].axis, q0.dtype)
+        return float(jnp.linalg.norm(jnp.cross(a, g))) < tol
+
+    before_ok = all(
+        m.kind == "prismatic" or (m.kind == "revolute" and vertical(k))
+        for k, m in enumerate(arm.modules[:i])
+    )
+    return arm.modules[i].kind != "spherical" and before_ok and vertical(i)
 
 
 class _CableEffect(ModuleEffect):
@@ -608,16 +763,51 @@ class DrumPeriodicError(_CableEffect):
 
 
 class LinkBending(Effect):
-    """Transverse bending of an inner link under gravity (a cantilever, :mod:`.loads`)."""
+    """Transverse bending of an inner link under gravity (a cantilever, :mod:`.loads`).
+
+    With the model's masses (variant ``""``): the compliances ``1/(E I)`` under the transverse
+    forces and under the tip moment. Without masses (variant ``"lumped"``, tried where the link
+    and the bodies beyond it have no mass): the tip rotation under the weights as a tip load
+    (rad, never negative) and the tip-moment deflection per lumped gravity moment of the
+    bodies beyond the link (:func:`.loads.lumped_bending_deflection`,
+    :func:`.loads.moment_terms`; rad each).
+    """
 
     name = "link_bending"
-    needs = "masses (mass, com of the modules' bodies)"
+    needs = "masses (mass, com of the modules' bodies), or none: lumped gravity moments"
     summary = "transverse bending of the upper arm or forearm under gravity"
+
+    def __init__(self, form: str = ""):
+        if form not in ("", "lumped"):
+            raise ValueError(f"link_bending form must be '' or 'lumped', got {form!r}")
+        self.variant = form
+
+    @property
+    def lumped(self) -> bool:
+        return self.variant == "lumped"
 
     def locations(self, arm):
         return arm.frame_names[1:-1]
 
+    def terms(self, arm: Arm, location: str) -> tuple[MomentTerm, ...]:
+        """The lumped gravity moments about the tip of link ``location``."""
+        return moment_terms(arm, self._index(arm, location), travel_first=True)
+
     def parameters(self, arm, location):
+        if self.lumped:
+            weights = (
+                ParameterSpec(
+                    "weight_rotation",
+                    "rad",
+                    0.0,
+                    LUMPED_MAX_RAD,
+                    "tip rotation under the weights it carries (the bodies beyond it and its "
+                    "own, as a tip load) with the link horizontal: compliance x weight x "
+                    "length^2 / 2 (never negative)",
+                ),
+            )
+            what = f"rotation of the {location} link's tip under the moment"
+            return weights + _moment_specs(arm, self.terms(arm, location), what)
         return (
             ParameterSpec(
                 "compliance",
@@ -646,20 +836,38 @@ class LinkBending(Effect):
 
     def missing(self, arm, location, aux_names):
         j = self._index(arm, location)
-        if _distal_mass(arm, j - 1) <= 0.0 and PAYLOAD not in aux_names:
-            return f"no mass on or beyond link {location!r} in the model and no payload_kg column"
         if float(jnp.linalg.norm(jnp.asarray(arm.frames)[j, :3, 3])) == 0.0:
             return f"link {location!r} has zero length"
+        massless = _distal_mass(arm, j - 1) <= 0.0
+        if self.lumped and not massless:
+            return "the model has the masses: the form with them is tried (more power)"
+        if not self.lumped and massless and PAYLOAD not in aux_names:
+            return (
+                f"no mass on or beyond link {location!r} in the model and no payload_kg column "
+                "(its lumped form is tried instead)"
+            )
         return None
 
     def features(self, arm, q, aux, location):
         j = self._index(arm, location)
-        d = bending_deflection(arm, q, j, _payload(aux, q), split=True)  # (m, 6, 2)
-        f = Features.zeros(arm, q.shape[0], 2, q.dtype)
+        if self.lumped:
+            d = lumped_bending_deflection(arm, q, j, self.terms(arm, location))
+        else:
+            d = bending_deflection(arm, q, j, _payload(aux, q), split=True)  # (m, 6, 2)
+        f = Features.zeros(arm, q.shape[0], d.shape[-1], q.dtype)
         fd = f.frame_deflection.at[:, j].set(d)
         return Features(f.state, f.module_twist, fd)
 
     def describe(self, location, values):
+        if self.lumped:
+            return (
+                f"the {location} link bends under gravity (masses unknown: {len(values)} "
+                "products fitted): tip rotation under the weights "
+                f"{_interval(values, 'weight_rotation', 'rad')}; under the moments "
+                + _lumped_words(
+                    {k: v for k, v in values.items() if not k.startswith("weight_")}, "rad"
+                )
+            )
         v = values["compliance"][0]
         ei = f" (E I {_fmt(1 / v)} N*mm^2)" if v > 0 else ""
         return (
@@ -757,6 +965,9 @@ VOCABULARY: tuple[Effect, ...] = (
     JointCompliance("isotropic"),
     JointCompliance("per_axis"),
     JointCompliance("per_axis_quadratic"),
+    JointCompliance("lumped"),
+    JointCompliance("lumped_axial"),
+    JointCompliance("lumped_transverse"),
     CableElasticity("holding"),
     CableElasticity("pretension_share"),
     CableElasticity("per_cable"),
@@ -772,6 +983,7 @@ VOCABULARY: tuple[Effect, ...] = (
     *(DrumPeriodicError(r, (1,)) for r in DRUM_RADII_MM),
     *(DrumPeriodicError(r, (2,)) for r in DRUM_RADII_MM),
     LinkBending(),
+    LinkBending("lumped"),
     ThermalDrift(),
     *(ThermalDrift(tau) for tau in WARMUP_TAUS_S),
 )

@@ -77,6 +77,20 @@ def link_tip_loads(arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0) 
     return to_start(F), to_start(M), P, jnp.broadcast_to(a, P.shape[:-1])
 
 
+def _link_axis(arm: Arm, j: int, dtype) -> tuple[Array, Array]:
+    """``(L, e)``: length (mm) and unit direction (start frame) of link ``j``."""
+    p = jnp.asarray(arm.frames, dtype)[j, :3, 3]
+    L = jnp.linalg.norm(p)
+    return L, p / L
+
+
+def _tip_moment_deflection(Mt: Array, e: Array, L: Array) -> Array:
+    """``(delta, theta) (..., 6)`` of a cantilever of length ``L`` along ``e`` per unit
+    compliance under the transverse tip moment ``Mt (..., 3)``: ``(Mt x e) L^2 / 2``,
+    ``Mt L``."""
+    return jnp.concatenate([jnp.cross(Mt, e) * L**2 / 2.0, Mt * L], axis=-1)
+
+
 def bending_deflection(
     arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0, *, split: bool = False
 ) -> Array:
@@ -88,11 +102,8 @@ def bending_deflection(
     See the module docstring; start frame of the link, mm and rad per 1/(N mm^2). The link
     must have a non-zero length (``LinkBending.missing`` reports it otherwise).
     """
-    frames = jnp.asarray(arm.frames)
-    L = jnp.linalg.norm(frames[j, :3, 3])
     F, M, P, a = link_tip_loads(arm, q, j, payload_kg)
-    e = frames[j, :3, 3] / L
-    e = e.astype(F.dtype)
+    L, e = _link_axis(arm, j, F.dtype)
     perp = lambda v: v - jnp.einsum("...i,i->...", v, e)[..., None] * e
     Ft, Mt, Pt = perp(F), perp(M), perp(P)
     a = a[..., None]
@@ -103,10 +114,138 @@ def bending_deflection(
         ],
         axis=-1,
     )
-    moment = jnp.concatenate([jnp.cross(Mt, e) * L**2 / 2.0, Mt * L], axis=-1)
+    moment = _tip_moment_deflection(Mt, e, L)
     if split:
         return jnp.stack([force, moment], axis=-1)
     return force + moment
+
+
+# ----------------------------------------------------------------- lumped gravity moments
+
+MomentTerm = tuple[int, str]
+"""One lumped gravity moment: ``(body, component)``, the module whose body it belongs to and
+``"x"``, ``"y"``, ``"z"`` (an axis of that module's platform frame), ``"u"``, ``"v"`` (the two
+directions across its joint axis, :func:`across_axis`) or ``"travel"`` (the distal mass carried
+along a prismatic module's travel)."""
+
+
+def across_axis(axis: ArrayLike) -> Array:
+    """``(2, 3)``: the directions ``u``, ``v`` across a unit joint axis ``a``: ``u`` is the
+    coordinate axis least aligned with ``a`` (the first of a tie) made perpendicular to it,
+    ``v = a x u`` (for ``a = z``: ``u = x``, ``v = y``)."""
+    a = jnp.asarray(axis)
+    e = jnp.eye(3, dtype=a.dtype)[jnp.argmin(jnp.abs(a))]
+    u = e - jnp.dot(e, a) * a
+    u = u / jnp.linalg.norm(u)
+    return jnp.stack([u, jnp.cross(a, u)])
+
+
+def moment_terms(
+    arm: Arm, first: int, *, axial: bool = False, travel_first: bool = False
+) -> tuple[MomentTerm, ...]:
+    """The lumped gravity moments of the bodies ``first .. K-1`` that gravity can tell apart.
+
+    The first moment ``sum_b m_b (x_b - o)`` of the distal bodies about a point ``o`` of
+    module ``first`` is, with ``w_b = h_b + M_b p_b`` (``h_b = m_b com_b``: the body's own
+    moment; ``M_b``: the mass beyond module ``b``; ``p_b``: the next fixed transform's
+    translation) constant in the platform frame ``P_b`` of module ``b``,
+    ``sum_b R_b w_b + sum_c M_c t_c`` (``R_b``: that frame's orientation; ``t_c``: the travel of
+    a prismatic module ``c``). The part of ``w_b`` along a revolute module's axis does not turn
+    with it and is one with the moment of the body before; a prismatic module does not turn, so
+    its whole ``w_b`` is. What is left, per body (its module's kind):
+
+    * ``first``: ``x, y, z`` (all three), or ``u, v`` with ``axial`` (a torque about the
+      module's own axis does not see the part along it);
+    * a later revolute module: ``u, v``; spherical: ``x, y, z``; prismatic: ``travel``;
+    * with ``travel_first``, a prismatic ``first`` adds its ``travel`` (the point ``o`` is
+      then its base origin, not its platform origin);
+    * where no module before ``first`` turns (it is the first, or they are prismatic),
+      gravity is fixed in its base frame: the part of its moment that does not turn with it
+      (all of it for a prismatic module, the part along the axis for a revolute one) has a
+      constant torque, a constant rotation of the platform that the frame errors absorb
+      exactly; a revolute ``first`` keeps ``u, v`` only, a prismatic one nothing.
+
+    These are the combinations identifiable from a deflection linear in the gravity torque
+    on an arm of general geometry (special geometry, e.g. a joint axis along a link, can make
+    one of them coincide with another; the fits are rank-revealing).
+    """
+    out: list[MomentTerm] = []
+    kinds = [m.kind for m in arm.modules]
+    for b in range(first, len(arm.modules)):
+        kind = kinds[b]
+        if b == first:
+            if travel_first and kind == "prismatic":
+                out.append((b, "travel"))
+            comps: tuple[str, ...] = ("u", "v") if axial else ("x", "y", "z")
+            if not travel_first and set(kinds[:first]) <= {"prismatic"}:
+                # gravity is fixed in the module's base frame: what does not turn with the
+                # module gives a constant torque, which the frame errors absorb exactly
+                comps = {"prismatic": (), "revolute": ("u", "v")}.get(kind, comps)
+        elif kind == "revolute":
+            comps = ("u", "v")
+        elif kind == "spherical":
+            comps = ("x", "y", "z")
+        else:
+            comps = ("travel",)
+        out += [(b, c) for c in comps]
+    return tuple(out)
+
+
+def moment_torques(arm: Arm, q: ArrayLike, terms: tuple[MomentTerm, ...]) -> Array:
+    """World torques ``(..., 3, n)`` of unit gravity ``g / |g|`` per unit lumped moment.
+
+    A body term ``(b, c)`` is the moment ``R_b d`` (``d`` its direction in the platform frame
+    of module ``b``): torque ``R_b d x g / |g|`` per kg mm; a ``travel`` term is the travel
+    ``t_b`` of prismatic module ``b`` (world frame): ``t_b x g / |g|`` per kg.
+    Multiplied by a compliance and ``|g|`` (N/kg), the lumped values are the products that a
+    gravity-driven deflection identifies (see :func:`moment_terms`).
+    """
+    q = jnp.asarray(q)
+    poses = module_poses(arm, q)
+    _, after = chain(jnp.asarray(arm.frames, q.dtype), poses)
+    g = jnp.asarray(arm.gravity, q.dtype)
+    g = g / jnp.linalg.norm(g)
+    eye = jnp.eye(3, dtype=q.dtype)
+    cols = []
+    for b, c in terms:
+        R = after[..., b, :3, :3]
+        if c == "travel":
+            r = jnp.einsum("...ij,...j->...i", R, poses[..., b, :3, 3])
+        else:
+            d = (
+                eye["xyz".index(c)]
+                if c in "xyz"
+                else across_axis(jnp.asarray(arm.modules[b].axis, q.dtype))["uv".index(c)]
+            )
+            r = jnp.einsum("...ij,j->...i", R, d)
+        cols.append(jnp.cross(r, g))
+    return jnp.stack(cols, axis=-1)
+
+
+def lumped_bending_deflection(
+    arm: Arm, q: ArrayLike, j: int, terms: tuple[MomentTerm, ...]
+) -> Array:
+    """Tip deflection ``(delta, theta) (..., 6, 1 + n)`` of link ``j`` (start frame) per unit
+    lumped parameter, without masses.
+
+    Columns: the weights it carries bend it as a tip load along the transverse unit gravity
+    ``gt``, ``(2 L gt / 3, e x gt)`` per rad of tip rotation (``c |g| M L^2 / 2``; the link's
+    own weight counts as part of it: a uniform link's own weight would give ``3 L / 4`` instead
+    of ``2 L / 3``); then per lumped moment of ``terms`` (:func:`moment_torques`, about the tip)
+    the tip-moment deflection per unit ``c |g| w L`` (rad; ``c = 1/(E I)``, ``L`` the link
+    length). A rigid rotation at the link's start (a compliant joint) has ``delta = L theta``:
+    the cantilever's shapes tell the two apart.
+    """
+    q = jnp.asarray(q)
+    L, e = _link_axis(arm, j, q.dtype)
+    g = world_gravity_direction(arm, q, j)
+    gt = g - jnp.einsum("...i,i->...", g, e)[..., None] * e
+    weight = jnp.concatenate([2.0 * L * gt / 3.0, jnp.cross(e, gt)], -1)[..., None]
+    _, after = chain(jnp.asarray(arm.frames, q.dtype), module_poses(arm, q))
+    M = jnp.einsum("...ji,...jn->...in", after[..., j - 1, :3, :3], moment_torques(arm, q, terms))
+    Mt = jnp.moveaxis(M - jnp.einsum("...in,i->...n", M, e)[..., None, :] * e[:, None], -1, -2)
+    moment = jnp.moveaxis(_tip_moment_deflection(Mt, e, L) / L, -2, -1)
+    return jnp.concatenate([weight, moment], axis=-1)
 
 
 def world_gravity_direction(arm: Arm, q: ArrayLike, j: int) -> Array:
