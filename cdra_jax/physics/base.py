@@ -212,7 +212,9 @@ class Candidate:
         if p == 0:
             return f
         size = jnp.max(jnp.stack([jnp.abs(a).reshape(-1, p).max(axis=0) for a in parts]), axis=0)
-        seen = size > ROUNDING * jnp.max(size)
+        # a column that is not finite stays as it is: the diagnosis marks the candidate failed
+        largest = jnp.max(jnp.where(jnp.isfinite(size), size, 0.0))
+        seen = ~(size <= ROUNDING * largest)
         return Features(*(jnp.where(seen, a, 0.0) for a in parts))
 
     def tool_pose(self, arm: Arm, q: ArrayLike, aux: Aux, params: ArrayLike) -> Array:
