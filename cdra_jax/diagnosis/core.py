@@ -757,7 +757,8 @@ def diagnose(
         )
         structure_rows = [{"location": name, "p_value": p_g} for p_g, name in by_group]
         if by_group and by_group[0][0] < alpha:
-            located_in, location_source = _place(arm, by_group[0][1]), "structure"
+            located_in = _place(arm, by_group[0][1], probe_place)
+            location_source = "structure"
         if best is not None:
             parameters = {}
             if refit_info["explained_fraction"] >= LOCATE_MIN:
@@ -902,10 +903,13 @@ def _not_in_model(
     ]
 
 
-def _place(arm: Arm, regressor: str) -> str:
-    """Where a misfit predictable from ``regressor`` lives: the module itself, the base for
-    ``time_s`` (a drift of the mount), the tool for ``payload_kg``."""
+def _place(arm: Arm, regressor: str, probe_place: str | None = None) -> str:
+    """Where a misfit predictable from ``regressor`` lives: the module itself; for ``time_s``
+    the fixed frame whose time-dependent probe explains it best (``probe_place``: a link that
+    grows as it warms up), else the base (a drift of the mount); the tool for ``payload_kg``."""
     if regressor == "time_s":
+        if probe_place in arm.frame_names[:-1]:
+            return str(probe_place)
         return arm.frame_names[0]
     if regressor == "payload_kg":
         return arm.frame_names[-1]
