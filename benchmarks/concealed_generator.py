@@ -56,8 +56,23 @@ EFFECTS: tuple[str, ...] = (
 )
 """Effects of the analyser's vocabulary (design.md, 'Candidate physics vocabulary')."""
 
-OUT_OF_LIBRARY: tuple[str, ...] = ("cable_coupling", "device_distortion")
+OUT_OF_LIBRARY: tuple[str, ...] = (
+    "cable_coupling",
+    "device_distortion",
+    "saturating_stretch",
+    "link_growth",
+    "nonspherical_joint",
+)
 """Effects with no candidate in the vocabulary: the expected verdict is ``unattributed``."""
+
+OOL_HOME: dict[str, str] = {
+    "saturating_stretch": "module",
+    "link_growth": "link",
+    "nonspherical_joint": "module",
+}
+"""Out-of-library effects with one place in the chain where they live (the module or link they
+act on): an analyser should locate its ``unattributed`` verdict there. ``cable_coupling`` (its
+path runs through two modules) and ``device_distortion`` (outside the arm) have none."""
 
 ALL_EFFECTS = EFFECTS + OUT_OF_LIBRARY
 
@@ -192,6 +207,12 @@ class ArmData:
             return (cabled[-1],) if len(cabled) >= 2 else ()
         if effect == "device_distortion":
             return ("measurement",)
+        if effect == "saturating_stretch":
+            return tuple(md.name for md in mods if md.rotational and md.n_cables)
+        if effect == "link_growth":
+            return self.frame_names[1:-1]
+        if effect == "nonspherical_joint":
+            return tuple(md.name for md in mods if md.kind == "spherical")
         raise ValueError(f"unknown effect {effect!r}; known: {ALL_EFFECTS}")
 
 
@@ -649,7 +670,9 @@ class Effect:
 
     @property
     def expected_location(self) -> str | None:
-        return self.location if self.name in EFFECTS else None
+        """Where a perfect analyser places it: the location of an in-library effect, and of an
+        out-of-library one that lives at one place of the chain (:data:`OOL_HOME`)."""
+        return self.location if self.name in EFFECTS or self.name in OOL_HOME else None
 
 
 NO_EFFECT = Effect(name="none", location=None)
@@ -664,6 +687,9 @@ _PARAMETERS = {
     "thermal_drift": ("steady-state mount drift, mm", 0.3),
     "cable_coupling": ("guide-pulley radius of the routed cables, mm/rad", 0.1),
     "device_distortion": ("distortion at 500 mm from the device centre, mm", 0.1),
+    "saturating_stretch": ("saturated payout error of the module's cables, mm", 0.05),
+    "link_growth": ("steady-state growth of the link's length, mm", 0.2),
+    "nonspherical_joint": ("platform centre shift at a 0.5 rad rotation, mm", 0.1),
 }
 
 
@@ -707,6 +733,18 @@ def draw_effect(
         shape["tilt_axis"] = (w / np.linalg.norm(w)).tolist()
         shape["tilt_per_mm"] = float(rng.uniform(1e-4, 4e-4))
         shape["tau_s"] = float(rng.uniform(300.0, 1200.0))
+    elif name == "saturating_stretch":
+        n = arm.modules[arm.module_index(location)].n_cables
+        shape["gains"] = rng.uniform(0.5, 1.5, n).tolist()
+        shape["signs"] = rng.choice([-1.0, 1.0], n).tolist()
+        shape["l_sat_mm"] = float(rng.uniform(2.0, 5.0))
+    elif name == "link_growth":
+        shape["tau_s"] = float(rng.uniform(300.0, 1200.0))
+    elif name == "nonspherical_joint":
+        S = rng.normal(size=(3, 3, 3))
+        S = 0.5 * (S + np.swapaxes(S, 1, 2))
+        shape["quadratic"] = (S / np.linalg.norm(S)).tolist()
+        shape["theta_ref_rad"] = 0.5
     elif name == "device_distortion":
         S = rng.normal(size=(3, 3, 3))
         S = 0.5 * (S + np.swapaxes(S, 1, 2))
@@ -841,6 +879,46 @@ def _apply_cable_coupling(scn, eff, r_g, F, M):
     return F, _cable_module_update(scn, eff, M, lengths)
 
 
+def _apply_saturating_stretch(scn, eff, a, F, M):
+    """(Out of library) a payout error that saturates: each cable of the module is off by
+    ``a g_k s_k tanh((l_cmd,k - l_home,k) / l_sat)`` (a slipping or settling cable sheath),
+    then cable forward kinematics. Monotone in the payout, neither periodic nor linear."""
+    g = np.asarray(eff.shape["gains"]) * np.asarray(eff.shape["signs"])
+    l_sat = eff.shape["l_sat_mm"]
+
+    def lengths(md, l_cmd, home):
+        return l_cmd + a * g * np.tanh((l_cmd - home) / l_sat)
+
+    return F, _cable_module_update(scn, eff, M, lengths)
+
+
+def _apply_link_growth(scn, eff, a, F, M):
+    """(Out of library) one link lengthens as it warms up: its fixed transform's translation
+    grows by ``a (1 - exp(-t / tau))`` along itself (``t``: ``time_s``). Unlike
+    ``thermal_drift`` the mount stays; unlike ``link_bending`` nothing depends on the pose."""
+    j = scn.arm.frame_names.index(eff.location)
+    grow = a * (1.0 - np.exp(-scn.time_s / eff.shape["tau_s"]))
+    p = F[:, j, :3, 3]
+    e = p / np.linalg.norm(p, axis=-1, keepdims=True)
+    F = F.copy()
+    F[:, j, :3, 3] = p + grow[:, None] * e
+    return F, M
+
+
+def _apply_nonspherical_joint(scn, eff, a, F, M):
+    """(Out of library) a ball joint that is not a perfect sphere: the platform centre moves by
+    ``a x^T S_k x`` (``x``: the module's rotation vector over ``theta_ref``, ``S_k`` a fixed
+    random symmetric tensor), in the module base frame. Quadratic in the rotation, so no frame
+    error absorbs it, and no vocabulary effect translates a spherical module's platform."""
+    i = scn.arm.module_index(eff.location)
+    S = np.asarray(eff.shape["quadratic"])
+    x = scn.q[:, scn.arm.slices[i]] / eff.shape["theta_ref_rad"]
+    d = a * np.einsum("mj,ijk,mk->mi", x, S, x)
+    M = M.copy()
+    M[:, i, :3, 3] = M[:, i, :3, 3] + d
+    return F, M
+
+
 def _play(s: np.ndarray, start: float, r: float) -> np.ndarray:
     """Play (backlash) operator of half-width ``r`` along the input sequence ``s``."""
     y = np.empty_like(s)
@@ -946,6 +1024,9 @@ _APPLY: dict[str, Callable] = {
     "link_bending": _apply_link_bending,
     "thermal_drift": _apply_thermal_drift,
     "cable_coupling": _apply_cable_coupling,
+    "saturating_stretch": _apply_saturating_stretch,
+    "link_growth": _apply_link_growth,
+    "nonspherical_joint": _apply_nonspherical_joint,
 }
 
 
