@@ -57,6 +57,24 @@ def _free_compiled_programs_after_each_module():
         gc.collect()
 
 
+_RSS_TEST_LIMIT_BYTES = 1_500_000_000
+"""A worker drops its compiled programs after any test once its resident memory exceeds this."""
+
+
+@pytest.fixture(autouse=True)
+def _free_compiled_programs_when_memory_is_high():
+    """Within a module, drop the compiled programs after a test once the worker holds more than
+    :data:`_RSS_TEST_LIMIT_BYTES`: modules of random arms or imported arms compile programs that
+    no later test reuses (one such module otherwise reached 3.4 GB), and the 3 GB budget of the
+    suite is per run, not per module."""
+    yield
+    if os.environ.get("CDRA_TEST_KEEP_CACHES") == "1":
+        return
+    if resident_bytes() > _RSS_TEST_LIMIT_BYTES:
+        jax.clear_caches()
+        gc.collect()
+
+
 @pytest.fixture(scope="session")
 def cdra():
     from cdra_jax import default_arm

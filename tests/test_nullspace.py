@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _memory import resident_bytes
 
 from cdra_jax import arm as arm_lib
 from cdra_jax import lie, simulation
@@ -35,16 +34,6 @@ from cdra_jax.calibration.nullspace import (
 )
 
 KINDS = ("spherical", "revolute", "prismatic")
-
-
-@pytest.fixture(autouse=True)
-def _drop_the_programs_of_random_arms(request):
-    """Every random arm compiles programs no other test reuses: drop them after such a test
-    once the worker holds more than 1 GB (a module of them otherwise reached 3 GB)."""
-    yield
-    params = getattr(getattr(request.node, "callspec", None), "params", {})
-    if {"seed", "kinds"} & set(params) and resident_bytes() > 1_000_000_000:
-        jax.clear_caches()
 
 
 def random_arm(seed: int, kinds: tuple[str, ...] | None = None) -> arm_lib.Arm:
