@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -56,6 +56,7 @@ from ..physics import (
     Candidate,
     Effect,
     Features,
+    TimeProbe,
     candidates,
     check_effect_data,
     model_effects,
@@ -72,7 +73,8 @@ when it removes at least this fraction of the excess held-out chi-square ``Q - E
 
 LOCATE_MIN = 0.5
 """An unattributed misfit is placed where the best (rejected) candidate sits when that
-candidate removes at least this fraction of the excess; otherwise the generic probes place it."""
+candidate removes at least this fraction of the excess and no generic probe at another place
+explains the residual more significantly; otherwise the structure test and the probes place it."""
 
 REFINE_GAIN_PER_PARAM = 2.0
 """A further form of the selected effect at the selected place (another variant, or a
@@ -757,11 +759,20 @@ def diagnose(
         )
         structure_rows = [{"location": name, "p_value": p_g} for p_g, name in by_group]
         if by_group and by_group[0][0] < alpha:
-            located_in = _place(arm, by_group[0][1], probe_place)
+            located_in = _place(arm, by_group[0][1], probe_rows, alpha)
             location_source = "structure"
         if best is not None:
             parameters = {}
-            if refit_info["explained_fraction"] >= LOCATE_MIN:
+            # the partial candidate places it, unless a generic probe elsewhere explains the
+            # residual better than the candidate does (a link growing with time that the
+            # mount's drift only partly mimics)
+            elsewhere = [
+                row
+                for row in probe_rows
+                if row["location"] != best.location
+                and row["p_value"] < by_key[(best.name, best.location)].p_value
+            ]
+            if refit_info["explained_fraction"] >= LOCATE_MIN and not elsewhere:
                 located_in, location_source = best.location, "partial candidate"
 
     not_ident = list(ABSORBED_EXACTLY) + [
@@ -903,13 +914,17 @@ def _not_in_model(
     ]
 
 
-def _place(arm: Arm, regressor: str, probe_place: str | None = None) -> str:
+def _place(arm: Arm, regressor: str, probe_rows: Sequence[Mapping] = (), alpha: float = 1.0) -> str:
     """Where a misfit predictable from ``regressor`` lives: the module itself; for ``time_s``
-    the fixed frame whose time-dependent probe explains it best (``probe_place``: a link that
-    grows as it warms up), else the base (a drift of the mount); the tool for ``payload_kg``."""
+    the fixed frame whose time probe (:class:`cdra_jax.physics.probes.TimeProbe`, the same
+    parameter count at every frame) explains it best, when one is significant: a link that
+    grows as it warms up, or the base (a drift of the mount, also where none is); the tool for
+    ``payload_kg``."""
     if regressor == "time_s":
-        if probe_place in arm.frame_names[:-1]:
-            return str(probe_place)
+        timed = [row for row in probe_rows if row["kind"] == TimeProbe.summary]
+        best = min(timed, key=lambda row: (row["p_value"], -(row["F"] or 0.0)), default=None)
+        if best is not None and best["p_value"] < alpha:
+            return str(best["location"])
         return arm.frame_names[0]
     if regressor == "payload_kg":
         return arm.frame_names[-1]

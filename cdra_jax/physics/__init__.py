@@ -44,6 +44,7 @@ from .model import needed_aux as needed_aux
 from .model import with_effect_values as with_effect_values
 from .model import with_effects as with_effects
 from .probes import PROBES as PROBES
+from .probes import TimeProbe as TimeProbe
 from .refit import EffectRefit as EffectRefit
 from .refit import RefitData as RefitData
 from .refit import data_residual as data_residual
