@@ -574,3 +574,24 @@ def test_a_shape_the_vocabulary_lacks_is_unattributed_where_it_lives_without_noi
     assert d.mismatch and (d.effect, d.located_in) == ("unattributed", "elbow"), d.report
     assert d.details["location_source"] in ("structure", "partial candidate")
     assert d.tests["structure"]["p_value"] < 0.01
+
+
+def test_a_misfit_that_changes_with_time_is_placed_at_the_frame_whose_time_probe_explains_it():
+    """Time probes have the same size at every fixed frame; the most significant one places a
+    time-dependent misfit (a link growing as it warms up), the base when none is significant."""
+    from cdra_jax.diagnosis.core import _place
+    from cdra_jax.physics import TimeProbe
+
+    arm = base().arm
+    kind = TimeProbe.summary
+    rows = [
+        {"location": "base", "kind": kind, "df": 6, "F": 30.0, "p_value": 1e-20},
+        {"location": "upper_arm", "kind": kind, "df": 6, "F": 200.0, "p_value": 1e-60},
+        {"location": "shoulder", "kind": "a module probe", "df": 36, "F": 900.0, "p_value": 1e-90},
+    ]
+    assert _place(arm, "time_s", rows, 0.01) == "upper_arm"
+    assert _place(arm, "time_s", [{**r, "p_value": 0.5} for r in rows], 0.01) == "base"
+    assert _place(arm, "elbow", rows, 0.01) == "elbow"
+    f = base().F
+    probe = next(c for c in base().everything if isinstance(c.effect, TimeProbe))
+    assert len(probe.parameters(arm)) == 6 and f.n_params > 0
