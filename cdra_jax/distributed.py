@@ -194,7 +194,7 @@ class Group:
         """
         timeout = self.timeout
         pending = set(range(1, self.num_processes))
-        beats = {k: (None, time.monotonic()) for k in pending}
+        beats: dict[int, tuple[str | None, float]] = {k: (None, time.monotonic()) for k in pending}
         last_count, last_change = progress(), time.monotonic()
         while pending:
             for k in sorted(pending):
@@ -307,7 +307,7 @@ def start_group(
                 "process_id"
             )
         coordinator, process_id = f"localhost:{free_port()}", 0
-    assert process_id is not None
+    assert process_id is not None and coordinator is not None
     from jax._src import xla_bridge
 
     if xla_bridge.backends_are_initialized():

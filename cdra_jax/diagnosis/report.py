@@ -261,7 +261,7 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
     ]
     if inapt:
         n: dict[str, int] = {}
-        for c in [*d.candidates, *inapt]:
-            n[c.effect] = n.get(c.effect, 0) + 1
+        for effect in [c.effect for c in d.candidates] + [c.effect for c in inapt]:
+            n[effect] = n.get(effect, 0) + 1
         lines.append("Not for this arm: " + "; ".join(_skipped_text(inapt, n)) + ".")
     return "\n".join(lines)
