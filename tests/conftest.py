@@ -35,6 +35,16 @@ from _memory import resident_bytes  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 
+def _drop_compiled_programs_above(limit: int) -> None:
+    """Drop JAX's compiled programs and traces when this worker holds more than ``limit``
+    bytes (never with ``CDRA_TEST_KEEP_CACHES=1``)."""
+    if os.environ.get("CDRA_TEST_KEEP_CACHES") == "1":
+        return
+    if resident_bytes() > limit:
+        jax.clear_caches()
+        gc.collect()
+
+
 _RSS_LIMIT_BYTES = 700_000_000
 """A worker drops its compiled programs after a module once its resident memory exceeds this."""
 
@@ -50,11 +60,7 @@ def _free_compiled_programs_after_each_module():
     makes slower still); the on-disk cache above makes the recompilation cheap.
     """
     yield
-    if os.environ.get("CDRA_TEST_KEEP_CACHES") == "1":
-        return
-    if resident_bytes() > _RSS_LIMIT_BYTES:
-        jax.clear_caches()
-        gc.collect()
+    _drop_compiled_programs_above(_RSS_LIMIT_BYTES)
 
 
 _RSS_TEST_LIMIT_BYTES = 1_500_000_000
@@ -68,11 +74,7 @@ def _free_compiled_programs_when_memory_is_high():
     no later test reuses (one such module otherwise reached 3.4 GB), and the 3 GB budget of the
     suite is per run, not per module."""
     yield
-    if os.environ.get("CDRA_TEST_KEEP_CACHES") == "1":
-        return
-    if resident_bytes() > _RSS_TEST_LIMIT_BYTES:
-        jax.clear_caches()
-        gc.collect()
+    _drop_compiled_programs_above(_RSS_TEST_LIMIT_BYTES)
 
 
 @pytest.fixture(scope="session")
