@@ -23,6 +23,14 @@ jax.config.update("jax_enable_x64", True)
 DATA = Path(__file__).parent / "data" / "urdf"
 
 
+@pytest.fixture(autouse=True)
+def _drop_the_programs_of_each_arm():
+    """Every test here compiles programs for its own random or imported arm that no other test
+    reuses: drop them after each (the module otherwise reached 3.4 GB)."""
+    yield
+    jax.clear_caches()
+
+
 def _random_arm(seed: int, kinds: str) -> Arm:
     """A chain of modules of ``kinds`` (``r``, ``s``, ``p``) with random axes and links."""
     rng = np.random.default_rng(seed)
