@@ -175,6 +175,14 @@ _LONG_FIRST = (
 # a second or more of CPU (mostly compiling solvers; measured per test on the full suite). Every
 # module keeps at least one cheap test in the quick loop. CI runs them all.
 _SLOW: dict[str, tuple[str, ...]] = {
+    "tests/test_gravity_moments.py": (
+        "test_lumped_moments_are_the_identifiable_combinations_of_the_statics",
+        "test_bending_with_masses_is_a_combination_of_the_lumped_columns",
+    ),
+    "tests/test_sweep_processes.py": (
+        "test_two_local_processes_give_the_one_process_table",
+        "test_a_process_that_never_connects_ends_the_wait",
+    ),
     "tests/test_nullspace.py": (
         "test_null_basis_is_the_svd_null_space_on_random_arms",
         "test_null_space_solve_is_the_pseudo_inverse_step",
