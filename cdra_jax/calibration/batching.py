@@ -97,31 +97,127 @@ def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) ->
     return call
 
 
-def two_pass(batched: Callable, chunk_size: int, *args):
-    """A batch in chunks, with a second pass over the trials the first pass flags.
+def chunked_loop(
+    init: Callable,
+    body: Callable,
+    running: Callable,
+    finish: Callable,
+    *,
+    chunk_size: int,
+    passes: int,
+    stragglers: int,
+) -> Callable:
+    """An iterative per-trial solver whose ``vmap`` runs the iteration chunk by chunk, with the
+    loop written at the level of the chunk.
 
-    ``batched(second, *chunk) -> (out, redo)`` evaluates one chunk of trials (every leaf of
-    ``args`` and of ``out`` has the batch on its leading axis); ``second`` is an unbatched
-    boolean scalar. The first pass evaluates every chunk with ``second=False``; the trials whose
-    ``redo`` flag is set are then gathered, in order, into chunks of ``chunk_size`` (the last one
-    part-filled, its spare lanes recomputing a flagged trial and dropped) and evaluated with
-    ``second=True``, and their outputs replace the first ones. The second pass therefore costs
-    in proportion to the flagged trials, not to the chunks that hold one. Both passes are
+    The solver is given as four per-trial functions:
+
+    * ``init(*args) -> (state, data)``: the start of a trial (``data``: what stays constant);
+    * ``body(it, mode, step, state, data) -> state``: one pass of the loop; ``it`` (int32, the
+      chunk's pass counter), ``mode`` (int32, see below) and ``step`` (bool) are the same for
+      the whole chunk (unbatched: a ``lax.cond`` on them is a real branch). The loop ends with
+      a pass with ``step`` false, in which the body is to evaluate the final state only;
+    * ``running(state) -> bool``: the trial still steps;
+    * ``finish(mode, state, data) -> (out, want)``: the result and the later mode (int32; 0:
+      none) that must solve the trial again.
+
+    The returned function takes ``*args`` (positional array pytrees) of one trial and returns
+    ``out``. A chunk runs its loop while more than ``limit`` of its trials are running: in mode
+    0 ``limit = chunk // stragglers``, so that a few slow trials do not hold the whole chunk
+    for their last steps; they are handed to mode 1 (solved again from the start, gathered
+    into chunks of their own, without the limit). Modes ``2 .. passes - 1`` are the solver's
+    own (:func:`multi_pass`). ``vmap`` of the function evaluates the batch by :func:`multi_pass`
+    in chunks of ``chunk_size``; an unbatched call is a chunk of one trial.
+
+    Each per-trial function is traced once, to a jaxpr, and the chunk's loop ``vmap``s its
+    replay, so that the solver's Python runs once per trace of the caller. Not differentiable
+    (as :func:`chunked_vmap`).
+    """
+
+    def call(*args):
+        init_r, (state_s, data_s) = _traced_once(init, *args)
+        scalar = jax.ShapeDtypeStruct((), jnp.int32)
+        flag = jax.ShapeDtypeStruct((), bool)
+        body_r, _ = _traced_once(body, scalar, scalar, flag, state_s, data_s)
+        running_r, _ = _traced_once(running, state_s)
+        finish_r, _ = _traced_once(finish, scalar, state_s, data_s)
+
+        def chunk_fn(mode, *chunk):
+            state, data = jax.vmap(init_r)(*chunk)
+            size = jax.tree.leaves(chunk)[0].shape[0]
+            limit = jnp.where(mode == 0, size // stragglers, 0)
+            step_all = jax.vmap(body_r, in_axes=(None, None, None, 0, 0))
+
+            def loop(c):
+                it, state, _ = c
+                step = jnp.sum(jax.vmap(running_r)(state)) > limit
+                return it + 1, step_all(it, mode, step, state, data), step
+
+            start = (jnp.asarray(0, jnp.int32), state, jnp.asarray(True))
+            _, state, _ = jax.lax.while_loop(lambda c: c[2], loop, start)
+            out, want = jax.vmap(finish_r, in_axes=(None, 0, 0))(mode, state, data)
+            handed_on = jax.vmap(running_r)(state)
+            return out, jnp.where(handed_on, 1, want).astype(jnp.int32)
+
+        def unbatched(*a):
+            one = jax.tree.map(lambda x: jnp.expand_dims(x, 0), a)
+            return jax.tree.map(lambda y: y[0], multi_pass(chunk_fn, chunk_size, passes, *one))
+
+        wrapped = custom_vmap(unbatched)
+
+        @wrapped.def_vmap
+        def _rule(axis_size, in_batched, *args):
+            args = jax.tree.map(
+                lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
+                list(args),
+                list(in_batched),
+            )
+            out = multi_pass(chunk_fn, chunk_size, passes, *args)
+            return out, jax.tree.map(lambda _: True, out)
+
+        return wrapped(*args)
+
+    return call
+
+
+def two_pass(batched: Callable, chunk_size: int, *args):
+    """:func:`multi_pass` with two passes and a boolean mode: ``batched(second, *chunk) ->
+    (out, redo)``, ``second`` an unbatched boolean scalar and ``redo`` a boolean per trial; the
+    flagged trials of the first pass are evaluated again with ``second=True``."""
+
+    def modes(mode, *chunk):
+        out, redo = batched(mode == 1, *chunk)
+        return out, redo.astype(jnp.int32) * (mode == 0)
+
+    return multi_pass(modes, chunk_size, 2, *args)
+
+
+def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
+    """A batch in chunks, with later passes over the trials that a pass hands on.
+
+    ``batched(mode, *chunk) -> (out, want)`` evaluates one chunk of trials (every leaf of
+    ``args`` and of ``out`` has the batch on its leading axis); ``mode`` is an unbatched int32
+    scalar, ``want`` an int32 per trial: 0 for a finished trial, else a mode above ``mode``
+    that must evaluate it again. The first pass evaluates every chunk in mode 0; then, mode by
+    mode, the trials that want it are gathered, in order, into chunks of ``chunk_size`` (the
+    last one part-filled, its spare lanes recomputing one of its trials and dropped) and
+    evaluated in that mode, and their outputs replace the earlier ones. A later pass therefore
+    costs in proportion to the trials it holds, not to the chunks that held one. All passes are
     iterations of one ``while_loop`` around one call of ``batched``, so that it is traced and
-    compiled once; ``second`` is a real branch (``lax.cond``) wherever ``batched`` uses it.
+    compiled once; ``mode`` is a real branch (``lax.cond``) wherever ``batched`` uses it.
 
     A batch that is not a multiple of the chunk size is padded with copies of its first trial
-    (never flagged for the second pass, and dropped from the result). An empty batch gives
-    empty outputs.
+    (never evaluated again, and dropped from the result). An empty batch gives empty outputs.
 
     Returns:
         ``out`` of the whole batch.
     """
     size = jax.tree.leaves(args)[0].shape[0]
+    mode_type = jax.ShapeDtypeStruct((), jnp.int32)
     if size == 0:
         # No trials: outputs with no trials (the chunk function's shapes, traced for one).
         one = jax.tree.map(lambda x: jax.ShapeDtypeStruct((1,) + x.shape[1:], x.dtype), args)
-        out_shape, _ = jax.eval_shape(batched, jax.ShapeDtypeStruct((), bool), *one)
+        out_shape, _ = jax.eval_shape(batched, mode_type, *one)
         return jax.tree.map(lambda s: jnp.zeros((0,) + s.shape[1:], s.dtype), out_shape)
     chunk = min(chunk_size, size)
     n_chunks = -(-size // chunk)
@@ -136,42 +232,46 @@ def two_pass(batched: Callable, chunk_size: int, *args):
     args = jax.tree.map(padding, args)
     index = jnp.asarray(0).dtype
     lanes = jnp.arange(chunk, dtype=index)
+    real = jnp.arange(padded) < size
     # ``batched`` traced once, to a jaxpr that the loop body replays.
     chunk_args = jax.tree.map(lambda x: jax.ShapeDtypeStruct((chunk,) + x.shape[1:], x.dtype), args)
-    call, (out_shape, _) = _traced_once(batched, jax.ShapeDtypeStruct((), bool), *chunk_args)
+    call, (out_shape, _) = _traced_once(batched, mode_type, *chunk_args)
     out0 = jax.tree.map(lambda s: jnp.zeros((padded,) + s.shape[1:], s.dtype), out_shape)
 
-    def flagged(redo):
-        """The flagged trials' indices in order, padded to whole chunks; and their count."""
-        redo = redo & (jnp.arange(padded) < size)
-        (idx,) = jnp.nonzero(redo, size=padded + chunk, fill_value=0)
-        return idx.astype(index), jnp.sum(redo, dtype=index)
+    def advance(mode, want):
+        """The next mode that some trial wants (``passes`` when none), its trials' indices in
+        order (padded to whole chunks) and their count."""
+        want = jnp.where(real, want, 0)
+        counts = jnp.stack([jnp.sum(want == p, dtype=index) for p in range(passes)])
+        later = (jnp.arange(passes) > mode) & (counts > 0)
+        nxt = jnp.where(jnp.any(later), jnp.argmax(later), passes).astype(jnp.int32)
+        (idx,) = jnp.nonzero(want == nxt, size=padded + chunk, fill_value=0)
+        return nxt, idx.astype(index), jnp.where(nxt < passes, counts[nxt % passes], 0)
 
     def body(state):
-        item, out, redo, idx, count = state
-        second = item >= n_chunks
-        start = jnp.where(second, item - n_chunks, item) * chunk
-        ids = jnp.where(second, jax.lax.dynamic_slice(idx, (start,), (chunk,)), start + lanes)
-        valid = ~second | (start + lanes < count)
-        new, new_redo = call(second, *jax.tree.map(lambda x: x[ids], args))
-        dest = jnp.where(valid, ids, padded)  # spare lanes of the last chunk: dropped
+        mode, c, count, idx, out, want = state
+        start = c * chunk
+        first = mode == 0
+        ids = jnp.where(first, start + lanes, jax.lax.dynamic_slice(idx, (start,), (chunk,)))
+        valid = first | (start + lanes < count)
+        new, new_want = call(mode, *jax.tree.map(lambda x: x[ids], args))
+        dest = jnp.where(valid, ids, padded)  # spare lanes of a part-filled chunk: dropped
         out = jax.tree.map(lambda o, n: o.at[dest].set(n, mode="drop"), out, new)
-        redo = jnp.where(second, redo, redo.at[dest].set(new_redo, mode="drop"))
-        idx, count = jax.lax.cond(item == n_chunks - 1, flagged, lambda _: (idx, count), redo)
-        return item + 1, out, redo, idx, count
-
-    def running(state):
-        item, _, _, _, count = state
-        return item < n_chunks + (count + chunk - 1) // chunk
+        want = want.at[dest].set(new_want.astype(jnp.int32), mode="drop")
+        c = c + 1
+        done = c * chunk >= count
+        mode, idx, count = jax.lax.cond(done, advance, lambda m, _: (m, idx, count), mode, want)
+        return mode, jnp.where(done, 0, c), count, idx, out, want
 
     init = (
-        jnp.asarray(0),
-        out0,
-        jnp.zeros(padded, bool),
-        jnp.zeros(padded + chunk, index),
+        jnp.asarray(0, jnp.int32),
         jnp.asarray(0, index),
+        jnp.asarray(padded, index),
+        jnp.zeros(padded + chunk, index),
+        out0,
+        jnp.zeros(padded, jnp.int32),
     )
-    _, out, _, _, _ = jax.lax.while_loop(running, body, init)
+    _, _, _, _, out, _ = jax.lax.while_loop(lambda s: s[0] < passes, body, init)
     return jax.tree.map(lambda y: y[:size], out)
 
 

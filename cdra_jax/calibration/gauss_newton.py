@@ -17,20 +17,28 @@ Performance (see ``benchmarks/README.md``). The solver is written for Monte-Carl
   ``forearm``), so ``(N + Z Z^T) X = D^T Y`` (Jacobi-scaled) is positive definite and its
   plain Cholesky solution is the minimum-norm step of the SVD, ``N^+ D^T Y``
   (:func:`.linear.null_space_solve`), at a fraction of the cost of an SVD, or of a pivoted
-  factorisation, per iteration. In lower precision, or with fewer rows, the step is the SVD
-  of ``D~`` (:func:`.linear.min_norm_lstsq`); trials whose data lose more directions than the
-  structural ones (too few or degenerate poses, detected from the Cholesky factor) are solved
-  again with SVD steps, gathered into chunks of their own (:func:`.batching.two_pass`);
-* the reported ``rank`` and ``singular_values`` are those of the SVD of ``D~`` at the solution,
-  with the singular-value cut-off ``rcond`` (:func:`.linear.default_rcond`), as before; with
-  ``singular_values=False`` that QR and SVD are skipped (a fifth of a 15-pose solve) and the
-  rank is the solve's own;
-* ``predictive_stop=True`` stops one step earlier, once the remaining steps are predicted
-  below ``tol`` (:data:`PREDICTIVE_MARGIN`);
-* under ``vmap`` the trials run in chunks (:mod:`.batching`).
+  factorisation, per iteration. Whether the data resolve every identifiable direction is
+  tested once, at the first step (an eigenvalue bound from the Cholesky factor): it is a
+  property of the pose set. In lower precision, or with fewer rows, the step is the SVD of
+  ``D~`` (:func:`.linear.min_norm_lstsq`); trials whose data lose more directions than the
+  structural ones (too few or degenerate poses) are solved again with SVD steps, gathered into
+  chunks of their own;
+* the rank, conditioning and singular values are not part of the iteration: the reported
+  ``rank`` is the solve's own (``n - k`` where the fast step was trusted, else that of its SVD
+  steps), and ``singular_values=True`` asks for the QR and SVD of ``D~`` at the solution, once
+  (a fifth of a 15-pose solve);
+* the iteration stops once the remaining steps are predicted below ``tol``
+  (``predictive_stop``, :data:`PREDICTIVE_MARGIN`): one step fewer, answers within 1e-10 mm of
+  the plain stop on the paper's problem;
+* under ``vmap`` the trials run in chunks of :data:`CHUNK_SIZE`, the loop written at the level
+  of the chunk (:func:`.batching.chunked_loop`): a chunk stops once all but a few of its trials
+  have converged (:data:`STRAGGLERS`) and the few are solved again in chunks of their own,
+  rather than holding the whole chunk for their last steps.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +47,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm
 from . import kernels
-from .batching import batched_like, chunked_vmap
+from .batching import chunked_loop
 from .linear import (
     RESOLVED_PIVOT,
     STRUCTURAL_TOL,
@@ -52,13 +60,17 @@ from .nullspace import null_basis, null_generators
 from .solution import (
     RESULTS,
     CalibrationSolution,
-    _solution_at,
+    _assemble_solution,
+    _singular_values,
     _solve_problem,
     dtype_default,
 )
 
-CHUNK_SIZE = 128
-"""Trials per chunk when the solver is vmapped (see :mod:`.batching`)."""
+CHUNK_SIZE = 32
+"""Trials per chunk when the solver is vmapped (see :mod:`.batching`). Smaller chunks keep the
+working set (``D~`` alone is 17 kB per CDRA trial of 15 poses) in the core's cache: 4096
+trials of the paper's problem took 80, 84 and 89 us per trial with chunks of 32, 64 and 128
+(interleaved, process CPU time, a loaded machine)."""
 
 TOL_FLOAT64 = 1e-10
 """Default ``tol`` (step norm ``||X||``, mm and rad mixed) of a float64 solve."""
@@ -72,6 +84,14 @@ each, 15 steps past convergence), so a float32 solve never met 1e-10 and always 
 the solve stops after 3-4 steps, at its first step on the floor, as accurate as after 20 (final
 ``delta_p`` of noise-free trials: median 3e-4 mm unweighted, 6e-5 mm weighted, either way).
 The floor scales with the arm's size (mm): pass ``tol`` for much larger arms."""
+
+STRAGGLERS = 16
+"""A chunk of the first pass stops once at most ``1 / STRAGGLERS`` of its trials still step;
+those are solved again, from the start, in chunks of their own (see :func:`_paper_solver`)."""
+
+_FAST, _CONTINUE, _SVD = 0, 1, 2
+"""The passes of a batched solve (:func:`.batching.chunked_passes`): fast steps with
+stragglers handed on, fast steps to the end, SVD steps."""
 
 PREDICTIVE_MARGIN = 0.1
 """``predictive_stop``: stop after step ``k`` once ``|X_k|^2 / (|X_{k-1}| - |X_k|)``, the sum of
@@ -95,8 +115,8 @@ def calibrate_paper(
     rcond: float | None = None,
     allow_underdetermined: bool = False,
     throw: bool = True,
-    singular_values: bool = True,
-    predictive_stop: bool = False,
+    singular_values: bool = False,
+    predictive_stop: bool = True,
 ) -> CalibrationSolution:
     """Calibrate the fixed transforms of ``arm`` with the paper's iterative least squares.
 
@@ -117,18 +137,21 @@ def calibrate_paper(
             then the minimum-norm one.
         throw: raise at run time when the result is not successful. Use ``throw=False`` under
             ``vmap`` and read ``result`` per trial.
-        singular_values: compute the singular values of ``D~`` at the solution (a QR and an
-            SVD per trial, static) and report the rank they give; ``False`` reports the solve's
-            own rank (the generic rank ``n - k`` of :mod:`.nullspace` where the fast step was
-            trusted, else that of the SVD steps; equal to the other wherever the fast step is
-            trusted) and NaN singular values. Monte-Carlo sweeps that do not need them save
-            about a fifth of the time.
-        predictive_stop: also stop after step ``k`` when the *next* step is predicted to be
-            below ``tol``: ``|X_k|^2 / |X_{k-1}| < tol`` (Gauss-Newton converges quadratically
-            near a zero-residual solution, and the ratio of successive steps falls at least as
-            fast with noise). Saves the last, negligible step (about one of five iterations of
-            a 15-pose CDRA solve); the frames differ from those of the default stop by about
-            that last step (below 1e-11 mm on the paper's problem, noise-free and noisy).
+        singular_values: also compute the singular values of ``D~`` at the solution (a QR and
+            an SVD per trial, once, after the iteration; static) and report the rank they
+            give. By default the rank is the solve's own (the generic rank ``n - k`` of
+            :mod:`.nullspace` where the fast step was trusted, else that of the SVD steps;
+            equal to the other wherever the fast step is trusted) and the singular values are
+            NaN: ask for them where they are read (the command line does), not in Monte-Carlo
+            batches (they cost about a fifth of a 15-pose solve).
+        predictive_stop: also stop after step ``k`` once the steps still to come are
+            predicted to move less than ``PREDICTIVE_MARGIN * tol`` in all: ``|X_k|^2 /
+            (|X_{k-1}| - |X_k|)``, their sum were they to shrink geometrically at the rate of
+            the last two (Gauss-Newton converges at least that fast near the solution). Saves
+            the last, negligible step (about one of five iterations of a 15-pose CDRA solve);
+            the frames differ from those of the plain stop by about that step (below 1e-11 mm
+            on the paper's problem, noise-free and noisy). ``False``: the paper's stop,
+            ``||X|| < tol`` alone.
 
     Returns:
         A :class:`CalibrationSolution`.
@@ -173,8 +196,8 @@ def _paper_solver(
     weighted,
     solver,
     null_modules=(),
-    singular_values=True,
-    predictive_stop=False,
+    singular_values=False,
+    predictive_stop=True,
 ):
     """The per-trial solver for one static configuration, chunked under ``vmap``.
 
@@ -186,155 +209,163 @@ def _paper_solver(
     SVD solver, with rank ``n - k``. A fast solve is redone with SVD steps where it cannot be
     trusted to equal the SVD solver's: where the data lose more than the structural directions
     or resolve an identifiable one poorly (too few or degenerate poses: the eigenvalue bound of
-    :func:`.linear.null_space_solve` below :data:`.linear.RESOLVED_PIVOT`), or where the
-    analytic basis is not null (module poses that are not the modules' own motions,
-    :data:`.linear.STRUCTURAL_TOL`). With ``singular_values`` the SVD of ``D~`` at the solution
-    is computed too and a trial whose step rank differs from its rank is redone as well. A
-    trial stops stepping at its first unresolved step (it is to be redone anyway). The batch is
-    solved fast, in chunks, and the trials to redo are then gathered into chunks of their own
-    and solved with SVD steps (:func:`.batching.two_pass`), so that the second pass costs in
-    proportion to those trials, not to the chunks that hold one. The result is therefore the
-    SVD solver's, up to rounding. (Such a gather inside a loop once deadlocked with the batch
-    on two CPU devices; the cause was jaxlib's LAPACK thread pool, fixed by
-    :mod:`cdra_jax.parallel`.)
+    :func:`.linear.null_space_solve` at the first step below :data:`.linear.RESOLVED_PIVOT`,
+    or a factorisation that breaks down later), or where the analytic basis is not null
+    (module poses that are not the modules' own motions, :data:`.linear.STRUCTURAL_TOL`,
+    tested at the first step: it does not depend on the frames). With ``singular_values`` the
+    SVD of ``D~`` at the solution is computed too and a trial whose step rank differs from its
+    rank is redone as well. A trial stops stepping at its first unresolved step (it is to be
+    redone anyway). The result is therefore the SVD solver's, up to rounding.
 
-    The two passes run the same compiled code: ``use_svd`` is a traced scalar shared by a
-    chunk, so the choice of step is a real branch (``lax.cond``) even under ``vmap``, and the
-    passes are iterations of one loop, so that the solver is traced and compiled once.
+    Under ``vmap`` (:func:`.batching.chunked_loop`) the batch runs in three passes of one
+    compiled loop, gathering the trials of a later pass into chunks of their own
+    (:func:`.batching.multi_pass`): fast steps, a chunk stopping once at most
+    ``1 / STRAGGLERS`` of its trials still step (:data:`_FAST`); those trials again from the
+    start, to the end (:data:`_CONTINUE`); the trials to redo with SVD steps (:data:`_SVD`).
+    The pass and the chunk's step counter are real branches (``lax.cond``) of the one loop.
+    (Such a gather inside a loop once deadlocked with the batch on two CPU devices; the cause
+    was jaxlib's LAPACK thread pool, fixed by :mod:`cdra_jax.parallel`.)
     """
     n_null = len(null_modules)
 
-    def run(use_svd, frames0, poses, measured, xi, *noise_std):
-        """One trial; ``use_svd`` (a boolean scalar, unbatched) picks the step."""
+    def init(frames0, poses, measured, xi, *noise_std):
+        """A trial's start: ``(state, data)``, ``data`` the pose-last module and measured poses
+        (Eq. 9's layout), the null generators and the noise model."""
         dtype = measured.dtype
-        n = frames0.shape[0] * 6
-        k_frames = frames0.shape[0]
         noise = NoiseModel(*noise_std) if weighted else None
         P = jnp.moveaxis(poses[..., :3, :], 0, -1)  # (K, 3, 4, m)
         T = kernels.pose_stack(measured)  # (3, 4, m)
-        nan = jnp.asarray(jnp.nan, dtype)
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
-        fast_allowed = normal_equations_apply(dtype, rcond, 6 * measured.shape[0], n)
+        n = 6 * frames0.shape[0]
+        nan = jnp.asarray(jnp.nan, dtype)
+        state = (
+            jnp.asarray(0, jnp.int32),  # steps taken
+            frames0,
+            jnp.full((max_iterations,), nan),  # step norms
+            jnp.full((max_iterations + 1,), nan),  # Eq. 20 at every model
+            jnp.full((max_iterations + 1,), nan),  # Eq. 21
+            nan,  # the cost of the last model evaluated
+            (jnp.asarray(n), jnp.asarray(0), jnp.asarray(True)),  # step ranks, all resolved
+            jnp.asarray(False),  # converged
+            finite_in,  # all finite so far
+        )
+        return state, (frames0, P, T, xi, noise)
 
-        def svd_step(lin, frames):
-            X, rank, _ = min_norm_lstsq(lin.DT.T, lin.Y, rcond)
+    def running(state):
+        k, _, _, _, _, _, (_, _, resolved), done, ok = state
+        return (k < max_iterations) & ~done & ok & resolved
+
+    def body(it, mode, step, state, data):
+        """Evaluate the current model (Eq. 7, Eqs. 20-21, the cost) and, with ``step``, take a
+        Gauss-Newton step where the trial still runs (``it``, ``mode`` and ``step`` are the
+        chunk's: real branches)."""
+        k, frames, steps, dps, dRs, _, ranks, done, ok = state
+        _, P, T, xi, noise = data
+        tool, after = kernels.chain(frames, P)
+        Y, dp, dR = kernels.residual_and_metrics(T, tool)
+        Yw = Y if noise is None else kernels.whiten(Y, T, noise)
+        state = (k, frames, steps, dps.at[k].set(dp), dRs.at[k].set(dR), jnp.sum(Yw * Yw))
+        state = state + (ranks, done, ok)
+        if_step = functools.partial(_step, it, mode, state, after, Yw.reshape(-1), data)
+        return jax.lax.cond(step, if_step, lambda: state)
+
+    def _step(it, mode, state, after, Yw, data):
+        k, frames, steps, dps, dRs, cost, (rank_lo, rank_hi, resolved), done, ok = state
+        _, _, T, xi, noise = data
+        dtype = T.dtype
+        n = 6 * frames.shape[0]
+        DT = kernels.jacobian_transposed(after, T, noise)
+
+        def svd_step():
+            X, rank, _ = min_norm_lstsq(DT.T, Yw, rcond)
             return X, rank, jnp.asarray(True)
 
-        def null_step(lin, frames):
-            N, g = lin.normal_equations()
+        def null_step():
+            N, g = DT @ DT.T, DT @ Yw
             Z = null_basis(frames, null_modules, xi)
-            X, smallest, structural = null_space_solve(N, g, Z)
-            finite = jnp.all(jnp.isfinite(N)) & jnp.all(jnp.isfinite(g))
+            # Whether the data resolve every identifiable direction, and whether the analytic
+            # basis is null, are properties of the pose set: tested at the first step only.
+            X, smallest, structural = jax.lax.cond(
+                it == 0,
+                lambda: null_space_solve(N, g, Z),
+                lambda: null_space_solve(N, g, Z, check=False),
+            )
             trusted = (smallest >= RESOLVED_PIVOT) & (structural <= STRUCTURAL_TOL)
             # A factorisation that broke down (NaN) on finite data is not a non-finite
             # problem: the step is not taken and the trial is redone with SVD steps.
-            X = jnp.where(finite, jnp.where(trusted, X, 0), nan)
+            finite = jnp.all(jnp.isfinite(Yw))
+            trusted = trusted & jnp.all(jnp.isfinite(X))
+            X = jnp.where(finite, jnp.where(trusted, X, 0), jnp.asarray(jnp.nan, dtype))
             return X, jnp.asarray(n - n_null), trusted
 
-        def step_of(lin, frames):
-            if not fast_allowed:
-                return svd_step(lin, frames)
-            return jax.lax.cond(use_svd, svd_step, null_step, lin, frames)
-
-        # One linearisation per pass: a pass steps while the iteration runs. With the singular
-        # values asked for, the last pass only linearises the final model (for Eqs. 20-21, the
-        # cost and the QR + SVD), so that the model (Eq. 9) is compiled once. Without them the
-        # loop only steps (the carry then holds no linearisation, 17 kB per trial for the CDRA)
-        # and the final model's residual and Eqs. 20-21 are evaluated after it: cheaper than a
-        # whole pass, which under vmap every trial of a chunk runs.
-        final_pass = singular_values
-
-        def body(carry):
-            k, frames, steps, dps, dRs, (rank_lo, rank_hi, resolved), done, ok = carry[:8]
-            lin = kernels.linearise(frames, P, T, noise)
-            dps = dps.at[k].set(lin.delta_p)
-            dRs = dRs.at[k].set(lin.delta_R)
-            # A fast step that cannot be trusted means a redo with SVD steps: stop stepping.
-            stepping = stepping_at(k, done, ok, resolved)
-            X, rank, res = step_of(lin, frames)
-            step = jnp.linalg.norm(X)
-            finite = jnp.isfinite(step)
-            moved = lie.se3_exp(X.reshape(k_frames, 6)) @ frames
-            converged = step < tol
-            if predictive_stop:
-                # What the steps after this one would still move, predicted from the last two:
-                # |X_k|^2 / (|X_{k-1}| - |X_k|), the geometric tail (module docstring).
-                previous = steps[jnp.maximum(k - 1, 0)]
-                tail = (k > 0) & (step * step < PREDICTIVE_MARGIN * tol * (previous - step))
-                converged = converged | tail
-            out = (
-                k + stepping,
-                jnp.where(stepping & finite, moved, frames),
-                jnp.where(stepping, steps.at[k].set(step), steps),
-                dps,
-                dRs,
-                (
-                    jnp.where(stepping, jnp.minimum(rank_lo, rank), rank_lo),
-                    jnp.where(stepping, jnp.maximum(rank_hi, rank), rank_hi),
-                    resolved & (res | ~stepping),
-                ),
-                jnp.where(stepping, converged, done),
-                jnp.where(stepping, finite, ok),
-            )
-            return out + (~stepping, lin) if final_pass else out
-
-        def stepping_at(k, done, ok, resolved):
-            return (k < max_iterations) & ~done & ok & resolved
-
-        head = (
-            jnp.asarray(0),
-            frames0,
-            jnp.full((max_iterations,), nan),
-            jnp.full((max_iterations + 1,), nan),
-            jnp.full((max_iterations + 1,), nan),
-            (jnp.asarray(n), jnp.asarray(0), jnp.asarray(True)),  # step ranks, all resolved
-            jnp.asarray(False),
-            finite_in,
-        )
-        if final_pass:
-            lin0 = jax.eval_shape(lambda: kernels.linearise(frames0, P, T, noise))
-            init = batched_like(
-                finite_in,
-                head
-                + (
-                    jnp.asarray(False),  # finished: the last pass has linearised the final model
-                    jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), lin0),
-                ),
-            )
-            k, frames, steps, dps, dRs, steps_ok, done, ok, _, lin = jax.lax.while_loop(
-                lambda c: ~c[8], body, init
-            )
+        if normal_equations_apply(dtype, rcond, DT.shape[1], n):
+            X, rank, res = jax.lax.cond(mode == _SVD, svd_step, null_step)
         else:
-            k, frames, steps, dps, dRs, steps_ok, done, ok = jax.lax.while_loop(
-                lambda c: stepping_at(c[0], c[6], c[7], c[5][2]),
-                body,
-                batched_like(finite_in, head),
-            )
-            tool, _ = kernels.chain(frames, P)
-            Y, dp, dR = kernels.residual_and_metrics(T, tool)
-            if noise is not None:
-                Y = kernels.whiten(Y, T, noise)
-            dps = dps.at[k].set(dp)
-            dRs = dRs.at[k].set(dR)
-            empty = jnp.zeros((n, 0), dtype)  # no Jacobian: the rank is the steps'
-            lin = kernels.Linearisation(Y=Y.reshape(-1), DT=empty, delta_p=dp, delta_R=dR)
-        rank_lo, rank_hi, resolved = steps_ok
-        sol = _solution_at(
+            X, rank, res = svd_step()
+        stepping = running(state)
+        step = jnp.linalg.norm(X)
+        finite = jnp.isfinite(step)
+        moved = lie.se3_exp(X.reshape(frames.shape[0], 6)) @ frames
+        converged = step < tol
+        if predictive_stop:
+            # What the steps after this one would still move, predicted from the last two:
+            # |X_k|^2 / (|X_{k-1}| - |X_k|), the geometric tail (module docstring).
+            previous = steps[jnp.maximum(k - 1, 0)]
+            tail = (k > 0) & (step * step < PREDICTIVE_MARGIN * tol * (previous - step))
+            converged = converged | tail
+        return (
+            k + stepping,
+            jnp.where(stepping & finite, moved, frames),
+            jnp.where(stepping, steps.at[k].set(step), steps),
+            dps,
+            dRs,
+            cost,
+            (
+                jnp.where(stepping, jnp.minimum(rank_lo, rank), rank_lo),
+                jnp.where(stepping, jnp.maximum(rank_hi, rank), rank_hi),
+                resolved & (res | ~stepping),
+            ),
+            jnp.where(stepping, converged, done),
+            jnp.where(stepping, finite, ok),
+        )
+
+    def finish(mode, state, data):
+        """The solution of one trial from its last evaluation (with the singular values asked
+        for: the QR and SVD of its Jacobian, once) and whether it is to be redone with SVD
+        steps."""
+        k, frames, steps, dps, dRs, cost, (rank_lo, rank_hi, resolved), done, ok = state
+        frames0, P, T, _, noise = data
+        n = 6 * frames0.shape[0]
+        fast = normal_equations_apply(T.dtype, rcond, 6 * T.shape[-1], n)
+        if singular_values:
+            lin = kernels.linearise(frames, P, T, noise)
+            sv, rank = _singular_values(lin.DT, rcond)
+        else:  # the rank is the steps'
+            sv, rank = jnp.full((n,), jnp.nan, T.dtype), rank_hi
+        sol = _assemble_solution(
             frames,
             frames0,
-            lin,
-            ok=ok,
-            rcond=rcond,
-            rank=None if singular_values else rank_hi,
+            ok=ok & jnp.isfinite(dps[k]) & jnp.isfinite(dRs[k]),
             done=done,
             iterations=k,
             step_norm=steps,
             delta_p=dps,
             delta_R=dRs,
+            rank=rank,
+            singular_values=sv,
+            cost=cost,
             solver=solver,
         )
-        redo = (sol.result != RESULTS.nonfinite) & (k > 0) & fast_allowed & ~use_svd
-        redo = redo & ((rank_lo != sol.rank) | (rank_hi != sol.rank) | ~resolved)
-        return sol, redo
+        redo = (sol.result != RESULTS.nonfinite) & (k > 0) & fast & (mode != _SVD)
+        redo = redo & ((rank_lo != rank) | (rank_hi != rank) | ~resolved)
+        return sol, jnp.where(redo, _SVD, 0)
 
-    return chunked_vmap(run, CHUNK_SIZE, second_pass=True)
+    return chunked_loop(
+        init,
+        body,
+        running,
+        finish,
+        chunk_size=CHUNK_SIZE,
+        passes=3,
+        stragglers=STRAGGLERS,
+    )

@@ -326,20 +326,26 @@ def linearise(
     its inverse), i.e. the norm of the rotational part of Eq. 7's residual, so the metric
     reuses that logarithm instead of taking a second one.
     """
-    dtype = poses.dtype
     tool, after = chain(jnp.asarray(frames), poses)
     Y, delta_p, delta_R = residual_and_metrics(measured, tool)  # Y: (6, m)
-    m = Y.shape[-1]
+    if noise is not None:  # G Y, G applied to the rows (v, w)
+        Y = whiten(Y, measured, noise)
+    DT = jacobian_transposed(after, measured, noise)
+    return Linearisation(Y=Y.reshape(-1), DT=DT, delta_p=delta_p, delta_R=delta_R)
+
+
+def jacobian_transposed(after: Array, measured: Array, noise: NoiseModel | None = None) -> Array:
+    """``D~^T (6(K+1), 6m)`` of Eq. 9 in the layout of :class:`Linearisation`, from the world
+    poses before each fixed frame (``after`` of :func:`chain`, ``(K, 3, 4, m)``) and, for the
+    whitening, the measured poses ``(3, 4, m)``."""
+    dtype = after.dtype
+    m = after.shape[-1]
     # D_k^T = [I; Ad(P_1)^T; ...; Ad(P_K)^T] as (K+1, 6, 6, m): (frame, column, row, pose)
     eye = jnp.broadcast_to(jnp.eye(6, dtype=dtype)[:, :, None], (6, 6, m))
     blocks = jnp.stack([eye] + [adjoint_transpose(a) for a in after])
-    if noise is not None:  # G Y and G D_k, G applied to the rows (v, w)
-        Y = whiten(Y, measured, noise)
+    if noise is not None:  # G D_k, G applied to the rows (v, w)
         blocks = jnp.moveaxis(whiten(jnp.moveaxis(blocks, 2, 0), measured, noise), 0, 2)
-    n = 6 * blocks.shape[0]
-    return Linearisation(
-        Y=Y.reshape(6 * m), DT=blocks.reshape(n, 6 * m), delta_p=delta_p, delta_R=delta_R
-    )
+    return blocks.reshape(6 * blocks.shape[0], 6 * m)
 
 
 def residual_and_metrics(measured: Array, tool: Array) -> tuple[Array, Array, Array]:

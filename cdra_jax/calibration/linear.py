@@ -237,7 +237,9 @@ module poses are the modules' own motions, the structural directions give ``~n e
 factorisation would drop too."""
 
 
-def null_space_solve(N: ArrayLike, g: ArrayLike, Z: ArrayLike) -> tuple[Array, Array, Array]:
+def null_space_solve(
+    N: ArrayLike, g: ArrayLike, Z: ArrayLike, *, check: bool = True
+) -> tuple[Array, Array, Array]:
     """``N^+ g`` for ``g`` in the range of ``N`` when the null space of ``N`` is known.
 
     With ``B (n, k)`` a basis of ``null(N)`` and ``A = N + B B^T`` (positive definite), the
@@ -262,13 +264,21 @@ def null_space_solve(N: ArrayLike, g: ArrayLike, Z: ArrayLike) -> tuple[Array, A
     degenerate poses) fails the first test (``A_s`` is then singular or nearly so: a tiny bound,
     or NaN where its Cholesky factorisation breaks down).
 
+    Both tests are properties of the data rather than of the model: the structural one holds
+    or fails for every model (the null directions are null when the module poses are the
+    modules' own motions, whatever the frames), and the eigenvalue bound changes little from
+    one Gauss-Newton iterate to the next. ``check=False`` skips them (the inverse of ``L``, a
+    product with ``Z_s``) and solves with ``L`` alone: the paper solver tests its first step and
+    takes the others unchecked.
+
     Args:
         N: ``(n, n)`` ``D~^T D~``. g: ``(n,)`` ``D~^T Y~``. Z: ``(n, k)`` orthonormal basis of
             the null space of ``N`` (:mod:`.nullspace`); ``k = 0`` for none.
+        check: compute the two tests (static).
 
     Returns:
         ``(x (n,), smallest, structural)``: the step, the eigenvalue bound (NaN when the
-        factorisation broke down) and ``max |N_s Z_s|``.
+        factorisation broke down) and ``max |N_s Z_s|``; without ``check``, ``inf`` and 0.
     """
     N = jnp.asarray(N)
     g = jnp.asarray(g, N.dtype)
@@ -280,14 +290,20 @@ def null_space_solve(N: ArrayLike, g: ArrayLike, Z: ArrayLike) -> tuple[Array, A
     structural = jnp.zeros((), N.dtype)
     if Z.shape[-1]:
         Zs = orthonormalise(Z * d[:, None])
-        structural = jnp.max(jnp.abs(A @ Zs))
+        if check:
+            structural = jnp.max(jnp.abs(A @ Zs))
         A = A + Zs @ Zs.T
     L = jnp.linalg.cholesky(A)
-    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(n, dtype=N.dtype), lower=True)
-    x = s * (Li.T @ (Li @ (s * g)))
+    if check:
+        Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(n, dtype=N.dtype), lower=True)
+        x = s * (Li.T @ (Li @ (s * g)))
+        smallest = 1.0 / jnp.sum(Li * Li)
+    else:
+        x = s * jax.scipy.linalg.cho_solve((L, True), s * g)
+        smallest = jnp.asarray(jnp.inf, N.dtype)
     if Z.shape[-1]:
         x = x - Z @ (Z.T @ x)
-    return x, 1.0 / jnp.sum(Li * Li), structural
+    return x, smallest, structural
 
 
 def null_space_basis(N: ArrayLike, Z: ArrayLike) -> tuple[Array, Array, Array]:

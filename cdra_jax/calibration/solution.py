@@ -201,6 +201,18 @@ def _assemble_solution(
     )
 
 
+def _singular_values(DT: Array, rcond: float | None) -> tuple[Array, Array]:
+    """The singular values of ``D~`` (given transposed, ``(n, 6m)``) and its rank (cut-off
+    ``rcond``, default :func:`.linear.default_rcond`): ``(s (min(n, 6m),), rank)``."""
+    from .linear import default_rcond
+
+    # The singular values of D~ (6m x n) are those of the triangular factor of its QR
+    # decomposition (Householder, backward stable): an SVD of n x n instead of 6m x n.
+    s = jnp.linalg.svd(jnp.linalg.qr(DT.T, mode="r"), compute_uv=False)
+    rc = default_rcond(DT.dtype) if rcond is None else rcond
+    return s, jnp.sum(s > rc * s[..., :1], axis=-1)
+
+
 def _solution_at(
     frames: Array,
     nominal: Array,
@@ -221,15 +233,9 @@ def _solution_at(
     and SVD are skipped: that rank is reported and the singular values are NaN (the solvers'
     ``singular_values=False``; 20 % of a paper solve of 15 CDRA poses).
     """
-    from .linear import default_rcond
-
     n = 6 * nominal.shape[-3]
     if rank is None:
-        # The singular values of D~ (6m x n) are those of the triangular factor of its QR
-        # decomposition (Householder, backward stable): an SVD of n x n instead of 6m x n.
-        s = jnp.linalg.svd(jnp.linalg.qr(lin.DT.T, mode="r"), compute_uv=False)
-        rc = default_rcond(lin.DT.dtype) if rcond is None else rcond
-        rank = jnp.sum(s > rc * s[..., :1], axis=-1)
+        s, rank = _singular_values(lin.DT, rcond)
     else:
         s = jnp.full((n,), jnp.nan, lin.Y.dtype)
     return _assemble_solution(
