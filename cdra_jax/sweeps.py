@@ -449,7 +449,7 @@ def _trial_function(
     m_verify: int,
     sampler: StateSampler | None,
     max_iterations: int | None,
-    predictive_stop: bool = False,
+    predictive_stop: bool = True,
 ) -> Callable:
     """``f(arm, base_key, trial, noise_pos, noise_rot) -> dict`` of one trial's outputs.
 
@@ -472,7 +472,7 @@ def _trial_function(
         kw: dict = {"singular_values": False}
         if max_iterations is not None:
             kw["max_iterations"] = max_iterations
-        gn = {"predictive_stop": True} if predictive_stop else {}
+        gn = {"predictive_stop": predictive_stop}
         if solver == "paper":
             sol = calibrate_paper(arm, q_cal, T_cal, None, throw=False, **kw, **gn)
         elif solver == "weighted":
@@ -513,7 +513,7 @@ def _batched_trials(
     m_verify: int,
     sampler: StateSampler | None,
     max_iterations: int | None,
-    predictive_stop: bool = False,
+    predictive_stop: bool = True,
 ) -> Callable:
     """The jitted and vmapped trial function of one cell (cached across sweeps, so a repeated
     sweep with the same settings and chunk size does not compile again; JAX compiles it once
@@ -600,7 +600,7 @@ def run_sweep(
     m_verify: int = 50,
     sampler: StateSampler | None = None,
     max_iterations: int | None = None,
-    predictive_stop: bool = False,
+    predictive_stop: bool = True,
     devices: Sequence[jax.Device] | None = None,
     progress: bool = True,
     checkpoint: str | os.PathLike | None = None,
@@ -627,9 +627,10 @@ def run_sweep(
             uniform). Pass :func:`cdra_jax.simulation.sample_states` for plain uniform states.
         max_iterations: solver iteration cap (default: each solver's own).
         predictive_stop: the paper and weighted solvers stop once the remaining steps are
-            predicted below their tolerance (:func:`~cdra_jax.calibration.calibrate_paper`):
-            about one step fewer per trial, frames and held-out errors within 1e-8 mm; the fit
-            metrics of a noise-free trial then end near 1e-10 mm rather than 1e-13.
+            predicted below their tolerance (their default,
+            :func:`~cdra_jax.calibration.calibrate_paper`): about one step fewer per trial,
+            frames and held-out errors within 1e-8 mm of the plain stop (``False``), whose
+            noise-free fit metrics end near 1e-13 mm rather than 1e-10.
         devices: devices to split every chunk over (default ``jax.local_devices()``, those of
             this process); several CPU devices need a large enough thread pool
             (:func:`cdra_jax.parallel.check_devices`, ``ValueError`` otherwise).
@@ -713,8 +714,9 @@ def run_sweep(
             "devices": n_dev,
             "dtype": str(dtype),
         }
-        if predictive_stop:  # only then: checkpoints of earlier sweeps stay valid
-            settings["predictive_stop"] = True
+        # Always recorded: a checkpoint of the other stop (or from before the predictive stop
+        # was the default, without the key) is refused rather than mixed with this one.
+        settings["predictive_stop"] = bool(predictive_stop)
         if me != 0:
             assert group is not None
             group.wait_ready()  # process 0 has made the folder: mismatches are refused here

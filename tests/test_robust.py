@@ -374,7 +374,8 @@ def test_reject_outliers_keeps_the_robust_fit_when_too_few_poses_remain():
     )
     plain = robust(p.arm, p.q, p.T_bad, NOISE_ARR, loss="cauchy", threshold=0.0, throw=False)
     assert not bool(r.refit) and bool(r.converged)
-    np.testing.assert_array_equal(np.asarray(r.frames), np.asarray(plain.frames))
-    np.testing.assert_array_equal(np.asarray(r.weights), np.asarray(plain.weights))
+    # Two programs compiled apart: the same fit to rounding.
+    np.testing.assert_allclose(np.asarray(r.frames), np.asarray(plain.frames), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(r.weights), np.asarray(plain.weights), rtol=1e-9)
     assert int(r.solution.iterations) == int(plain.solution.iterations)
     assert bool(np.all(np.asarray(r.outliers)))

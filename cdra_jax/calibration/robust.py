@@ -374,6 +374,7 @@ def calibrate_robust(
     rcond: float | None = None,
     allow_underdetermined: bool = False,
     throw: bool = True,
+    singular_values: bool = False,
 ) -> RobustSolution:
     """Robust calibration of the fixed transforms of ``arm`` by IRLS (see the module docstring).
 
@@ -398,6 +399,9 @@ def calibrate_robust(
         rcond: relative singular-value cut-off of the inner solves (see :mod:`.linear`).
         allow_underdetermined: passed to the inner solver (fewer than 4 poses).
         throw: raise when the result is not successful; use ``False`` under ``vmap``.
+        singular_values: the inner solves compute the singular values of the Jacobian at
+            their solutions (see :func:`calibrate_paper`; static); the result reports those of
+            the final solve, NaN without.
 
     Returns:
         A :class:`RobustSolution`.
@@ -419,7 +423,12 @@ def calibrate_robust(
     m = measured.shape[0]
     sigma = _noise_scale(noise, dtype)
     inner = _SOLVERS[solver]
-    kwargs: dict = {"rcond": rcond, "allow_underdetermined": allow_underdetermined, "throw": False}
+    kwargs: dict = {
+        "rcond": rcond,
+        "allow_underdetermined": allow_underdetermined,
+        "throw": False,
+        "singular_values": singular_values,
+    }
     if max_iterations is not None:
         kwargs["max_iterations"] = max_iterations
     nominal = jnp.asarray(arm.frames, dtype)

@@ -363,7 +363,9 @@ def calibrate(
     # Wrong units or conventions stop here with an error naming the column; the rest warns.
     plausibility = list(check_plausibility(arm, meas))
     solve_noise = None if solver == "paper" else noise
-    kwargs: dict[str, Any] = {"throw": False}
+    # The result reports the singular values of the Jacobian at the solution: computed once,
+    # after the iteration (the solvers skip them by default).
+    kwargs: dict[str, Any] = {"throw": False, "singular_values": True}
     if max_iterations is not None:
         kwargs["max_iterations"] = max_iterations
     sol: Any

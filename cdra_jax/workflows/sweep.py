@@ -99,7 +99,7 @@ def sweep(
     progress: bool = True,
     checkpoint: str | os.PathLike | None = None,
     model_label: str | None = None,
-    predictive_stop: bool = False,
+    predictive_stop: bool = True,
     processes: int = 1,
     process_id: int | None = None,
     coordinator: str | None = None,
@@ -124,7 +124,8 @@ def sweep(
             interruption resumes where it stopped (same table; see
             :func:`cdra_jax.sweeps.run_sweep`).
         model_label: name of the model in the table's metadata.
-        predictive_stop: the paper and weighted solvers stop a step earlier (see
+        predictive_stop: the paper and weighted solvers stop once the remaining steps are
+            predicted below their tolerance (the default; ``False``: the plain stop, see
             :func:`cdra_jax.sweeps.run_sweep`).
         processes: processes sharing the chunks (1: this one alone). More need
             ``checkpoint`` (the folder they all write to) and must start before JAX runs
