@@ -266,7 +266,7 @@ def _paper_solver(
         Yw = Y if noise is None else kernels.whiten(Y, T, noise)
         state = (k, frames, steps, dps.at[k].set(dp), dRs.at[k].set(dR), jnp.sum(Yw * Yw))
         state = state + (ranks, done, ok)
-        if_step = functools.partial(_step, it, mode, state, after, Yw.reshape(-1), data)
+        if_step = functools.partial(_step, it, mode, state, after, Yw, data)
         return jax.lax.cond(step, if_step, lambda: state)
 
     def _step(it, mode, state, after, Yw, data):
@@ -274,14 +274,14 @@ def _paper_solver(
         _, _, T, xi, noise = data
         dtype = T.dtype
         n = 6 * frames.shape[0]
-        DT = kernels.jacobian_transposed(after, T, noise)
 
         def svd_step():
-            X, rank, _ = min_norm_lstsq(DT.T, Yw, rcond)
+            DT = kernels.jacobian_transposed(after, T, noise)
+            X, rank, _ = min_norm_lstsq(DT.T, Yw.reshape(-1), rcond)
             return X, rank, jnp.asarray(True)
 
         def null_step():
-            N, g = DT @ DT.T, DT @ Yw
+            N, g = kernels.normal_equations(after, Yw, T, noise)
             Z = null_basis(frames, null_modules, xi)
             # Whether the data resolve every identifiable direction, and whether the analytic
             # basis is null, are properties of the pose set: tested at the first step only.
@@ -298,7 +298,7 @@ def _paper_solver(
             X = jnp.where(finite, jnp.where(trusted, X, 0), jnp.asarray(jnp.nan, dtype))
             return X, jnp.asarray(n - n_null), trusted
 
-        if normal_equations_apply(dtype, rcond, DT.shape[1], n):
+        if normal_equations_apply(dtype, rcond, Yw.size, n):
             X, rank, res = jax.lax.cond(mode == _SVD, svd_step, null_step)
         else:
             X, rank, res = svd_step()

@@ -348,6 +348,54 @@ def jacobian_transposed(after: Array, measured: Array, noise: NoiseModel | None 
     return blocks.reshape(6 * blocks.shape[0], 6 * m)
 
 
+def normal_equations(
+    after: Array, Y: Array, measured: Array, noise: NoiseModel | None = None
+) -> tuple[Array, Array]:
+    """``(D~^T D~ (n, n), D~^T Y~ (n,))`` of Eq. 10, as :meth:`Linearisation.normal_equations`
+    of :func:`linearise` to rounding, without the zeros of ``D~``.
+
+    Pose ``k``'s rows of ``D`` are ``[Ad(P_0), ..., Ad(P_K)]`` (Eq. 8, ``P_0 = I``), ``Ad(P) =
+    [[R, H], [0, R]]`` with ``H = hat(p) R`` (Eq. 25): a block's rotation rows do not depend
+    on its translation parameters. The whitening keeps that (:func:`whiten`: ``G = S
+    Ad(Tr(-p_meas))``, so ``G Ad(P) = S Ad(P')`` with ``P'`` the pose moved by ``-p_meas`` and
+    ``S = diag(I / s_pos, I / s_rot)``). So ``N = V^T V + W^T W`` with ``V`` the translation
+    rows (all ``n`` parameters: ``[R, H] / s_pos`` per block) and ``W`` the rotation rows of
+    the rotation parameters only (``R / s_rot``): 5/8 of the multiplications of ``D~^T D~``
+    and no zero block.
+
+    Args:
+        after: ``(K, 3, 4, m)`` world poses before each fixed frame after the first (``after``
+            of :func:`chain`).
+        Y: ``(6, m)`` the residual of Eq. 7, whitened with ``noise`` (:func:`whiten`).
+        measured: ``(3, 4, m)`` measured tool poses (for the whitening).
+        noise: the noise model, or ``None`` (the paper's form).
+    """
+    dtype = after.dtype
+    m = after.shape[-1]
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype)[:, :, None], (3, 3, m))
+    R = jnp.concatenate([eye[None], after[:, :, :3]])  # (K+1, 3, 3, m)
+    p = jnp.concatenate([jnp.zeros((1, 3, m), dtype), after[:, :, 3]])  # (K+1, 3, m)
+    if noise is not None:
+        p = p - measured[:, 3]
+    # H = hat(p) R, column c: p x R[:, c]
+    H = jnp.stack(_cross(jnp.moveaxis(p, 1, 0)[:, :, None], jnp.moveaxis(R, 1, 0)), axis=1)
+    # V (K+1, 6, 3, m): parameter (v, w) of each block, then the translation row and the pose
+    V = jnp.concatenate([jnp.swapaxes(R, 1, 2), jnp.swapaxes(H, 1, 2)], axis=1)
+    W = jnp.swapaxes(R, 1, 2)  # (K+1, 3, 3, m): rotation parameters, rotation rows
+    if noise is not None:
+        V = V / jnp.asarray(noise.position_mm, dtype)
+        W = W / jnp.asarray(noise.rotation_rad, dtype)
+    k1 = R.shape[0]
+    V = V.reshape(6 * k1, 3 * m)
+    W = W.reshape(3 * k1, 3 * m)
+    Yv, Yw = Y[:3].reshape(3 * m), Y[3:].reshape(3 * m)
+    N = (V @ V.T).reshape(k1, 2, 3, k1, 2, 3)
+    N = N.at[:, 1, :, :, 1, :].add((W @ W.T).reshape(k1, 3, k1, 3))
+    g = (V @ Yv).reshape(k1, 2, 3).at[:, 1].add((W @ Yw).reshape(k1, 3))
+    n = 6 * k1
+    return N.reshape(n, n), g.reshape(n)
+
+
 def residual_and_metrics(measured: Array, tool: Array) -> tuple[Array, Array, Array]:
     """Eq. 7's residual ``(6, m)`` and Eqs. 20-21 from it, for pose stacks ``(3, 4, m)``.
 
