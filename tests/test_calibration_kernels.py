@@ -56,6 +56,16 @@ def _problem(arm, seed, m=15, noise=None):
     return _problem_jit(arm, jnp.asarray(seed), m, noise)
 
 
+@eqx.filter_jit
+def _both_normal_equations(frames, P, Ts, noise):
+    """:func:`kernels.normal_equations` and those of :func:`kernels.linearise`."""
+    tool, after = kernels.chain(frames, P)
+    Y = kernels.residual(Ts, tool)
+    Y = Y if noise is None else kernels.whiten(Y, Ts, noise)
+    fast = kernels.normal_equations(after, Y, Ts, noise)
+    return fast, kernels.linearise(frames, P, Ts, noise).normal_equations()
+
+
 @pytest.mark.parametrize("noise", [None, NOISE], ids=["paper", "weighted"])
 def test_linearise_is_the_stacked_system(cdra, noise):
     q, T, P, Ts, X = _problem(cdra, 1, noise=NOISE)
@@ -69,6 +79,11 @@ def test_linearise_is_the_stacked_system(cdra, noise):
     N, g = lin.normal_equations()
     np.testing.assert_allclose(N, D.T @ D, rtol=0, atol=1e-13 * scale**2)
     np.testing.assert_allclose(g, D.T @ Y, rtol=1e-12, atol=1e-12 * scale)
+    # The same from the nonzero rows only (the fast step's; weighted: per-pose noise).
+    nm = None if noise is None else NoiseModel(jnp.linspace(0.04, 0.06, 15), 1e-3)
+    (N_s, g_s), (N_d, g_d) = _both_normal_equations(frames, P, Ts, nm)
+    np.testing.assert_allclose(N_s, N_d, rtol=0, atol=1e-13 * float(jnp.abs(N_d).max()))
+    np.testing.assert_allclose(g_s, g_d, rtol=0, atol=1e-13 * float(jnp.abs(g_d).max()))
     # Eqs. 20-21 (the rotation metric from the residual's logarithm).
     tool = eqx.filter_jit(tool_pose)(cdra.with_frames(frames), q)
     dp, dR = deviation_metrics(T, tool)
