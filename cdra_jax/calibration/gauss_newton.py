@@ -305,7 +305,7 @@ def _paper_solver(
         stepping = running(state)
         step = jnp.linalg.norm(X)
         finite = jnp.isfinite(step)
-        moved = lie.se3_exp(X.reshape(frames.shape[0], 6)) @ frames
+        moved = kernels.left_multiply(lie.se3_exp(X.reshape(frames.shape[0], 6)), frames)
         converged = step < tol
         if predictive_stop:
             # What the steps after this one would still move, predicted from the last two:

@@ -78,6 +78,16 @@ def compose(A: Array, B: Array) -> Array:
     return jnp.concatenate([R, p[:, None]], axis=1)
 
 
+def left_multiply(E: Array, F: Array) -> Array:
+    """``E F`` for homogeneous matrices ``(..., 4, 4)`` (broadcasting), as sums of elementwise
+    products: for a few 4x4 matrices per trial under ``vmap`` cheaper than a matrix product
+    call (the solvers' update of the frames, Eqs. 11-14)."""
+    top = E[..., :3, 3:] * F[..., 3:, :]
+    for c in range(3):
+        top = top + E[..., :3, c : c + 1] * F[..., c : c + 1, :]
+    return jnp.concatenate([top, jnp.broadcast_to(F[..., 3:, :], top.shape[:-2] + (1, 4))], -2)
+
+
 def chain(frames: Array, poses: Array) -> tuple[Array, Array]:
     """Eq. 1 on pose stacks: :func:`cdra_jax.arm.chain` in the pose-last layout.
 

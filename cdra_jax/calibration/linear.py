@@ -256,20 +256,26 @@ def null_space_solve(
     radian columns of the CDRA's ``N`` differ by ``|p|^2 ~ 1e6`` and an unpivoted factorisation
     lost up to ``1e-8`` relative accuracy where the scaled one keeps ``1e-11`` (7-pose sets).
 
-    Whether this step can be trusted is returned with it, cheaply: the lower bound
-    ``1 / trace(A_s^-1) = 1 / |L^-1|_F^2 <= lambda_min(A_s)`` (at most ``n`` times too small;
-    the relative accuracy of ``x`` is about ``eps / lambda_min(A_s)``), to be tested against
-    :data:`RESOLVED_PIVOT`; and ``max |N_s Z_s|``, to be below :data:`STRUCTURAL_TOL` (``Z``
-    really is null). A pose set that loses more directions than the structural ones (too few or
-    degenerate poses) fails the first test (``A_s`` is then singular or nearly so: a tiny bound,
-    or NaN where its Cholesky factorisation breaks down).
+    Whether this step can be trusted is returned with it, cheaply: ``lambda_min(A_s)`` by two
+    steps of inverse iteration from a fixed vector ``u`` with components along every direction
+    (``y = A_s^-1 u``, ``lambda ~ |y| / |A_s^-1 y|``, two more solves with ``L``; an estimate
+    from above, within a few per cent of ``lambda_min`` once it is well below the other
+    eigenvalues: the relative accuracy of ``x`` is about ``eps / lambda_min(A_s)``), to be
+    tested against :data:`RESOLVED_PIVOT`; and ``max |N_s Z_s|``, to be below
+    :data:`STRUCTURAL_TOL` (``Z`` really is null). A pose set that loses more directions than
+    the structural ones (too few or degenerate poses) fails the first test (``A_s`` is then
+    singular or nearly so: a tiny estimate, or NaN where its Cholesky factorisation breaks
+    down).
 
     Both tests are properties of the data rather than of the model: the structural one holds
     or fails for every model (the null directions are null when the module poses are the
-    modules' own motions, whatever the frames), and the eigenvalue bound changes little from
-    one Gauss-Newton iterate to the next. ``check=False`` skips them (the inverse of ``L``, a
-    product with ``Z_s``) and solves with ``L`` alone: the paper solver tests its first step and
-    takes the others unchecked.
+    modules' own motions, whatever the frames), and ``lambda_min`` changes little from one
+    Gauss-Newton iterate to the next. ``check=False`` skips them: the paper solver tests its
+    first step and takes the others unchecked.
+
+    The products with the ``k`` (few) columns of ``Z`` are written as sums of ``k`` outer
+    products or dot products, which XLA fuses, rather than as matrix products (each a call of
+    its own, costly for such small operands under ``vmap``).
 
     Args:
         N: ``(n, n)`` ``D~^T D~``. g: ``(n,)`` ``D~^T Y~``. Z: ``(n, k)`` orthonormal basis of
@@ -277,33 +283,44 @@ def null_space_solve(
         check: compute the two tests (static).
 
     Returns:
-        ``(x (n,), smallest, structural)``: the step, the eigenvalue bound (NaN when the
-        factorisation broke down) and ``max |N_s Z_s|``; without ``check``, ``inf`` and 0.
+        ``(x (n,), smallest, structural)``: the step, the estimate of ``lambda_min(A_s)`` (NaN
+        when the factorisation broke down) and ``max |N_s Z_s|``; without ``check``, ``inf``
+        and 0.
     """
     N = jnp.asarray(N)
     g = jnp.asarray(g, N.dtype)
     Z = jnp.asarray(Z, N.dtype)
-    n = N.shape[-1]
+    n, k = N.shape[-1], Z.shape[-1]
     d = jnp.sqrt(jnp.diagonal(N))
     s = 1.0 / d
     A = N * s[:, None] * s[None, :]
     structural = jnp.zeros((), N.dtype)
-    if Z.shape[-1]:
+    if k:
         Zs = orthonormalise(Z * d[:, None])
-        if check:
-            structural = jnp.max(jnp.abs(A @ Zs))
-        A = A + Zs @ Zs.T
+        if check:  # max |A_s Z_s|, column by column
+            AZ = [jnp.sum(A * Zs[None, :, c], axis=1) for c in range(k)]
+            structural = jnp.max(jnp.abs(jnp.stack(AZ)))
+        A = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k))
     L = jnp.linalg.cholesky(A)
+
+    def solve(b):
+        return jax.scipy.linalg.cho_solve((L, True), b)
+
+    x = s * solve(s * g)
     if check:
-        Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(n, dtype=N.dtype), lower=True)
-        x = s * (Li.T @ (Li @ (s * g)))
-        smallest = 1.0 / jnp.sum(Li * Li)
+        y = solve(jnp.asarray(_probe(n), N.dtype))
+        smallest = jnp.linalg.norm(y) / jnp.linalg.norm(solve(y))
     else:
-        x = s * jax.scipy.linalg.cho_solve((L, True), s * g)
         smallest = jnp.asarray(jnp.inf, N.dtype)
-    if Z.shape[-1]:
-        x = x - Z @ (Z.T @ x)
+    if k:
+        x = x - sum(Z[:, c] * jnp.dot(Z[:, c], x) for c in range(k))
     return x, smallest, structural
+
+
+def _probe(n: int) -> np.ndarray:
+    """The start of the inverse iteration of :func:`null_space_solve`: fixed, with components
+    of similar size in every direction (not a structured vector that a pose set could miss)."""
+    return np.cos(1.0 + 2.3 * np.arange(n))
 
 
 def null_space_basis(N: ArrayLike, Z: ArrayLike) -> tuple[Array, Array, Array]:
