@@ -45,8 +45,8 @@ def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) ->
             ``lax.cond`` on the flag.
 
     ``fn`` is traced once per call, to a jaxpr: ``custom_vmap`` needs the unbatched function
-    and the batching rule vmaps the same jaxpr, so that the Python code of ``fn`` (for an
-    optimistix solver, most of the lowering time) is not traced twice.
+    and the batching rule vmaps the same jaxpr, so that the Python code of ``fn`` is not traced
+    twice.
     """
 
     def call(*args):
@@ -112,7 +112,8 @@ def chunked_loop(
 
     The solver is given as four per-trial functions:
 
-    * ``init(*args) -> (state, data)``: the start of a trial (``data``: what stays constant);
+    * ``init(mode, *args) -> (state, data)``: the start of a trial (``data``: what stays
+      constant; ``mode``, int32, see below);
     * ``body(it, mode, step, state, data) -> state``: one pass of the loop; ``it`` (int32, the
       chunk's pass counter), ``mode`` (int32, see below) and ``step`` (bool) are the same for
       the whole chunk (unbatched: a ``lax.cond`` on them is a real branch). The loop ends with
@@ -135,15 +136,15 @@ def chunked_loop(
     """
 
     def call(*args):
-        init_r, (state_s, data_s) = _traced_once(init, *args)
         scalar = jax.ShapeDtypeStruct((), jnp.int32)
+        init_r, (state_s, data_s) = _traced_once(init, scalar, *args)
         flag = jax.ShapeDtypeStruct((), bool)
         body_r, _ = _traced_once(body, scalar, scalar, flag, state_s, data_s)
         running_r, _ = _traced_once(running, state_s)
         finish_r, _ = _traced_once(finish, scalar, state_s, data_s)
 
         def chunk_fn(mode, *chunk):
-            state, data = jax.vmap(init_r)(*chunk)
+            state, data = jax.vmap(init_r, in_axes=(None,) + (0,) * len(chunk))(mode, *chunk)
             size = jax.tree.leaves(chunk)[0].shape[0]
             limit = jnp.where(mode == 0, size // stragglers, 0)
             step_all = jax.vmap(body_r, in_axes=(None, None, None, 0, 0))
@@ -159,9 +160,37 @@ def chunked_loop(
             handed_on = jax.vmap(running_r)(state)
             return out, jnp.where(handed_on, 1, want).astype(jnp.int32)
 
+        def solve(mode, *a):
+            """One trial in ``mode``: the loop of ``chunk_fn`` on the replays, unbatched."""
+            state, data = init_r(mode, *a)
+
+            def loop(c):
+                it, state, _ = c
+                step = running_r(state)
+                return it + 1, body_r(it, mode, step, state, data), step
+
+            start = (jnp.asarray(0, jnp.int32), state, jnp.asarray(True))
+            _, state, _ = jax.lax.while_loop(lambda c: c[2], loop, start)
+            return finish_r(mode, state, data)
+
         def unbatched(*a):
-            one = jax.tree.map(lambda x: jnp.expand_dims(x, 0), a)
-            return jax.tree.map(lambda y: y[0], multi_pass(chunk_fn, chunk_size, passes, *one))
+            # Mode after mode while the trial wants another (a chunk of one has no stragglers):
+            # the replays, not a batch of one, so that nothing is batched twice when traced.
+            out0, want0 = jax.eval_shape(solve, jnp.int32(0), *a)
+            zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out0)
+
+            def again(c):
+                mode, _ = c
+                out, want = solve(mode, *a)
+                return want.astype(jnp.int32), out
+
+            start = (jnp.asarray(0, jnp.int32), zeros)
+            _, out = jax.lax.while_loop(
+                lambda c: (c[0] >= 0) & (c[0] < passes),
+                lambda c: _next_mode(again(c), c[0]),
+                start,
+            )
+            return out
 
         wrapped = custom_vmap(unbatched)
 
@@ -178,6 +207,13 @@ def chunked_loop(
         return wrapped(*args)
 
     return call
+
+
+def _next_mode(result, mode):
+    """``(next mode, out)`` of an unbatched trial after ``mode``: the mode it wants, or -1 when
+    it wants none (the loop of :func:`chunked_loop`'s unbatched path then ends)."""
+    want, out = result
+    return jnp.where(want > mode, want, -1).astype(jnp.int32), out
 
 
 def two_pass(batched: Callable, chunk_size: int, *args):

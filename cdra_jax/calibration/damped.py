@@ -2,7 +2,7 @@
 
 The robust ``auto`` solver, the calibration of a model with effects and the diagnosis' joint
 refit each minimise ``|r(u)|^2`` over a few dozen parameters, with a compiled ``(r, J)`` and a
-handful of steps between reweighting rounds. A compiled optimistix loop would compile one more
+handful of steps between reweighting rounds. A compiled loop would compile one more
 program per problem (most of a minute on two CPU cores for the extended models); this loop adds
 no compilation, and its rank-revealing step takes no component along directions the data do
 not determine.

@@ -228,7 +228,7 @@ def _paper_solver(
     """
     n_null = len(null_modules)
 
-    def init(frames0, poses, measured, xi, *noise_std):
+    def init(mode, frames0, poses, measured, xi, *noise_std):
         """A trial's start: ``(state, data)``, ``data`` the pose-last module and measured poses
         (Eq. 9's layout), the null generators and the noise model."""
         dtype = measured.dtype

@@ -381,21 +381,104 @@ def normal_equations(
         noise: the noise model, or ``None`` (the paper's form).
     """
     dtype = after.dtype
-    m = after.shape[-1]
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype)[:, :, None], (3, 3, m))
-    R = jnp.concatenate([eye[None], after[:, :, :3]])  # (K+1, 3, 3, m)
-    p = jnp.concatenate([jnp.zeros((1, 3, m), dtype), after[:, :, 3]])  # (K+1, 3, m)
+    R, p = _blocks(after)
     if noise is not None:
         p = p - measured[:, 3]
-    # H = hat(p) R, column c: p x R[:, c]
-    H = jnp.stack(_cross(jnp.moveaxis(p, 1, 0)[:, :, None], jnp.moveaxis(R, 1, 0)), axis=1)
+    H = _hat_times(p, R)
     # V (K+1, 6, 3, m): parameter (v, w) of each block, then the translation row and the pose
     V = jnp.concatenate([jnp.swapaxes(R, 1, 2), jnp.swapaxes(H, 1, 2)], axis=1)
     W = jnp.swapaxes(R, 1, 2)  # (K+1, 3, 3, m): rotation parameters, rotation rows
     if noise is not None:
         V = V / jnp.asarray(noise.position_mm, dtype)
         W = W / jnp.asarray(noise.rotation_rad, dtype)
-    k1 = R.shape[0]
+    return _split_gram(V, W, Y)
+
+
+def lm_normal_equations(
+    X: Array,
+    after: Array,
+    r: Array,
+    measured: Array,
+    noise: NoiseModel | None = None,
+    basis: Array | None = None,
+) -> tuple[Array, Array, Array]:
+    """``(B^T J^T J B (n, n), B^T J^T r~ (n,), r~ (6, m))``: the normal equations of LM's
+    residual (:func:`residual_jacobian`) at ``X`` in the coordinates ``u`` of ``X = B u``
+    (``basis`` ``B (n, n)``; ``None``: the identity), without ``J`` itself.
+
+    ``J = -G J_r^-1(r) D diag(J_l(X_j))``: per pose the rows of ``D`` (Eq. 8) are moved by
+    ``M = G J_r^-1(r) = [[a, b], [0, c]]`` (3x3 blocks: ``J_r^-1`` and the whitening ``G``
+    are both block upper triangular), which keeps the rotation rows of a block free of its
+    translation parameters, so that ``(M D)^T (M D)`` splits as in :func:`normal_equations`:
+    translation rows ``[a R, a H + b R]`` of every parameter and rotation rows ``c R`` of the
+    rotation parameters. The constant right factor ``diag(J_l)`` (6x6 per frame) goes into
+    ``B``. The test suite checks ``N`` and ``g`` against ``J`` of :func:`residual_jacobian`.
+
+    Args:
+        X: ``(6 (K+1),)`` error twists (``frames = exp(hat(X_j)) F_j``).
+        after: ``(K, 3, 4, m)`` world poses before the fixed frames at ``X`` (:func:`chain`).
+        r: ``(6, m)`` Eq. 7's residual at ``X`` (unwhitened).
+        measured: ``(3, 4, m)`` measured tool poses. noise: the noise model, or ``None``.
+        basis: ``(n, n)``, or ``None``.
+    """
+    dtype = after.dtype
+    k1 = after.shape[0] + 1
+    n = 6 * k1
+    _, Q, Ji = se3_left_jacobian_blocks(-r)  # J_r^-1(r) = J_l^-1(-r) = [[Ji, -Ji Q Ji], [0, Ji]]
+    a, b, c = Ji, -_matmul3(_matmul3(Ji, Q), Ji), Ji
+    rw = r
+    if noise is not None:  # G = S [[I, -hat(p_meas)], [0, I]], S = diag(I / s_pos, I / s_rot)
+        sp = jnp.asarray(noise.position_mm, dtype)
+        sr = jnp.asarray(noise.rotation_rad, dtype)
+        b = (b - _matmul3(_hat(measured[:, 3]), Ji)) / sp
+        a, c = a / sp, c / sr
+        rw = whiten(r, measured, noise)
+    R, p = _blocks(after)
+    H = _hat_times(p, R)
+    aR = _rows_times(a, R)
+    V = jnp.concatenate([aR, _rows_times(a, H) + _rows_times(b, R)], axis=1)
+    W = aR if noise is None else _rows_times(c, R)
+    N, g = _split_gram(V, W, rw)
+    # diag(J_l(X_j)) (6x6 per frame) and the basis: B' = diag(J_l) B; the sign of J on g.
+    Jl, Ql, _ = se3_left_jacobian_blocks(X.reshape(k1, 6).T)  # (3, 3, K+1)
+    top = jnp.concatenate([Jl, Ql], axis=1)
+    bottom = jnp.concatenate([jnp.zeros_like(Jl), Jl], axis=1)
+    L = jnp.moveaxis(jnp.concatenate([top, bottom]), 2, 0)  # (K+1, 6, 6)
+    B = jnp.eye(n, dtype=dtype) if basis is None else basis
+    Bp = jnp.einsum("iac,icu->iau", L, B.reshape(k1, 6, -1)).reshape(n, -1)
+    return Bp.T @ (N @ Bp), -(Bp.T @ g), rw
+
+
+def _rows_times(a: Array, M: Array) -> Array:
+    """``(a M_j)^T`` per block and pose in the layout of :func:`_split_gram`: ``a (3, 3, m)``
+    (rows, inner, pose) and ``M (K+1, 3, 3, m)`` (block, inner, column, pose) ->
+    ``(K+1, 3, 3, m)`` (block, column, row, pose)."""
+    return sum(a[None, None, :, e] * M[:, e, :, None] for e in range(3))
+
+
+def _blocks(after: Array) -> tuple[Array, Array]:
+    """The rotations ``(K+1, 3, 3, m)`` and translations ``(K+1, 3, m)`` of the poses before
+    every fixed frame, the first (the world frame) the identity."""
+    dtype = after.dtype
+    m = after.shape[-1]
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype)[:, :, None], (3, 3, m))
+    R = jnp.concatenate([eye[None], after[:, :, :3]])
+    p = jnp.concatenate([jnp.zeros((1, 3, m), dtype), after[:, :, 3]])
+    return R, p
+
+
+def _hat_times(p: Array, R: Array) -> Array:
+    """``hat(p) R`` per block and pose: ``(K+1, 3, m), (K+1, 3, 3, m) -> (K+1, 3, 3, m)``
+    (column ``c``: ``p x R[:, c]``)."""
+    return jnp.stack(_cross(jnp.moveaxis(p, 1, 0)[:, :, None], jnp.moveaxis(R, 1, 0)), axis=1)
+
+
+def _split_gram(V: Array, W: Array, Y: Array) -> tuple[Array, Array]:
+    """``N = V^T V + W^T W``, ``g = V^T Y_v + W^T Y_w`` (see :func:`normal_equations`) from the
+    translation rows ``V (K+1, 6, 3, m)`` of every parameter and the rotation rows
+    ``W (K+1, 3, 3, m)`` of the rotation parameters (parameter block, parameter, row, pose), and
+    the residual ``Y (6, m)``."""
+    k1, m = V.shape[0], V.shape[-1]
     V = V.reshape(6 * k1, 3 * m)
     W = W.reshape(3 * k1, 3 * m)
     Yv, Yw = Y[:3].reshape(3 * m), Y[3:].reshape(3 * m)

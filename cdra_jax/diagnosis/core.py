@@ -14,8 +14,9 @@
    log-likelihood gain and the candidates this pose set cannot tell apart are tabulated. The
    selected candidate is the one with the largest held-out gain among those significant at
    ``alpha`` after Holm's correction.
-4. **Refit** the frame errors and the selected candidate's parameters jointly (optimistix
-   Levenberg-Marquardt on the whitened residual), with 95 % intervals from the joint covariance
+4. **Refit** the frame errors and the selected candidate's parameters jointly
+   (Levenberg-Marquardt on the whitened residual, :mod:`cdra_jax.calibration.damped`), with
+   95 % intervals from the joint covariance
    and a plausibility check. If the refit still misfits (held-out p < alpha) and removes less
    than :data:`EXPLAINED_MIN` of the excess held-out misfit, or no candidate is significant,
    the effect is ``unattributed`` and located by generic probes (:mod:`cdra_jax.physics.probes`).

@@ -92,7 +92,7 @@ SOLVERS: tuple[str, ...] = ("auto", "paper", "weighted", "lm")
 * ``paper``: the paper's unweighted iterative least squares (Eqs. 9-14, minimum-norm steps);
 * ``weighted``: the same iteration on the residual whitened by the noise model (needs one; the
   default with a noise model);
-* ``lm``: Levenberg-Marquardt (optimistix), whitened when a noise model is given.
+* ``lm``: Levenberg-Marquardt, whitened when a noise model is given.
 
 ``paper``, ``weighted`` and ``lm`` fit full tool poses only.
 """
