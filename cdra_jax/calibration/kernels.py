@@ -453,7 +453,10 @@ def _rows_times(a: Array, M: Array) -> Array:
     """``(a M_j)^T`` per block and pose in the layout of :func:`_split_gram`: ``a (3, 3, m)``
     (rows, inner, pose) and ``M (K+1, 3, 3, m)`` (block, inner, column, pose) ->
     ``(K+1, 3, 3, m)`` (block, column, row, pose)."""
-    return sum(a[None, None, :, e] * M[:, e, :, None] for e in range(3))
+    out = a[None, None, :, 0] * M[:, 0, :, None]
+    for e in (1, 2):
+        out = out + a[None, None, :, e] * M[:, e, :, None]
+    return out
 
 
 def _blocks(after: Array) -> tuple[Array, Array]:
