@@ -157,6 +157,20 @@ def test_lm_jacobian_is_the_derivative_of_the_residual(cdra, noise):
     ref = jax.jit(jax.jacfwd(residual))(X)
     np.testing.assert_allclose(r, jax.jit(residual)(X), rtol=0, atol=1e-11)
     np.testing.assert_allclose(J, ref, rtol=0, atol=1e-13 * float(jnp.max(jnp.abs(ref))))
+    # LM's normal equations without J, in the coordinates of a basis: (J B)^T (J B), (J B)^T r.
+    B = jax.random.normal(jax.random.PRNGKey(4), (24, 24))
+    N, g, rw = _lm_normal_equations(X, cdra.frames, P, Ts, noise, B)
+    JB = J @ B
+    np.testing.assert_allclose(rw.reshape(-1), r, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(N, JB.T @ JB, rtol=0, atol=1e-12 * float(jnp.abs(N).max()))
+    np.testing.assert_allclose(g, JB.T @ r, rtol=0, atol=1e-12 * float(jnp.abs(g).max()))
+
+
+@eqx.filter_jit
+def _lm_normal_equations(X, frames0, P, Ts, noise, B):
+    frames = lie.se3_exp(X.reshape(-1, 6)) @ frames0
+    tool, after = kernels.chain(frames, P)
+    return kernels.lm_normal_equations(X, after, kernels.residual(Ts, tool), Ts, noise, B)
 
 
 # --------------------------------------------------------------------------- normal equations
