@@ -9,6 +9,7 @@ command line (:mod:`.cli`) and the notebooks share.
 """
 
 import importlib.metadata
+from typing import TYPE_CHECKING
 
 from . import arm as arm
 from . import calibration as calibration
@@ -17,13 +18,11 @@ from . import identifiability as identifiability
 from . import io as io
 from . import lie as lie
 from . import modules as modules
-from . import plots as plots
 from . import pose_selection as pose_selection
-from . import reproduction as reproduction
 from . import simulation as simulation
 from . import sweeps as sweeps
 from . import uncertainty as uncertainty
-from . import workflows as workflows
+from ._lazy import lazy_names
 from .arm import Arm as Arm
 from .arm import Module as Module
 from .arm import apply_frame_errors as apply_frame_errors
@@ -52,5 +51,12 @@ from .pose_selection import prediction_bound as prediction_bound
 from .pose_selection import select_poses as select_poses
 from .sweeps import run_sweep as run_sweep
 from .uncertainty import analyze_uncertainty as analyze_uncertainty
+
+if TYPE_CHECKING:  # imported on first use: the figures, the paper's reproduction, workflows
+    from . import plots as plots
+    from . import reproduction as reproduction
+    from . import workflows as workflows
+
+__getattr__, __dir__ = lazy_names(__name__, {"plots": "", "reproduction": "", "workflows": ""})
 
 __version__ = importlib.metadata.version("cdra_jax")

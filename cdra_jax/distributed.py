@@ -7,8 +7,8 @@ processes tell each other: that process 0 is ready, and for every other process 
 its end (done, or the error it stopped on). No XLA collective is used (the processes share no
 array), so the group works on CPUs as well as GPUs, without ``jax_cpu_collectives_implementation``.
 The work itself (which process computes what, where the results go) is the caller's:
-:func:`cdra_jax.sweeps.run_sweep` gives chunk ``i`` to process ``i mod N`` and reads the
-others' chunks from the folder they share.
+:func:`cdra_jax.sweeps.run_sweep` gives the chunks simulated together (``k``-th in table
+order) to process ``k mod N`` and reads the others' chunks from the folder they share.
 
 A process that dies or hangs never leaves process 0 waiting forever: ``jax.distributed`` runs in
 its recoverable mode (``jax_enable_recoverability``; without it, the coordination service

@@ -37,10 +37,13 @@ bounded by the chunk whatever the number of trials. Each chunk is split into one
 device of ``jax.local_devices()`` (:func:`cdra_jax.parallel.split_over_devices`), and the parts
 run at the same time, so a multi-GPU host, or a CPU presented as several devices
 (:func:`cdra_jax.parallel.use_cpu_devices`, which ``cdra-jax sweep`` calls), uses all of them
-with the same code. The chunks can also be shared out over several processes, on this machine
-or several (:mod:`cdra_jax.distributed`; ``cdra-jax sweep --processes N``): chunk ``g`` goes
-to process ``g mod N``, each process writes its chunks to the checkpoint folder, and process 0
-gathers them into the same table as one process's. Results are a tidy table, one row per trial
+with the same code. The cells of one pose count and noise group hold the same trials whatever
+their solver: a chunk of their trials is simulated once (one compiled program) and calibrated
+by each solver (one compiled program per solver). The chunks can also be shared out over several
+processes, on this machine or several (:mod:`cdra_jax.distributed`; ``cdra-jax sweep
+--processes N``): the chunks simulated together, numbered ``k`` in table order, go to process
+``k mod N``, each process writes its chunks to the checkpoint folder, and process 0 gathers them
+into the same table as one process's. Results are a tidy table, one row per trial
 (:class:`SweepTable`), saved as CSV or, where pyarrow is installed, Parquet.
 """
 
@@ -440,18 +443,17 @@ def _projection(use_svd, D, e, Z):
 _project_identifiable = chunked_vmap(_projection, 128, second_pass=True)
 
 
-def _trial_function(
+def _simulation_function(
     m: int,
-    solver: str,
     noisy: bool,
     d_v: float,
     d_w: float,
     m_verify: int,
     sampler: StateSampler | None,
-    max_iterations: int | None,
-    predictive_stop: bool = True,
 ) -> Callable:
-    """``f(arm, base_key, trial, noise_pos, noise_rot) -> dict`` of one trial's outputs.
+    """``f(arm, base_key, trial, noise_pos, noise_rot) -> (q_cal, T_cal, q_ver, T_ver, X)``:
+    one trial's simulated data (:func:`~cdra_jax.simulation.simulate_trial`), the same for
+    every solver (the key depends on the seed, ``m`` and the trial only).
 
     The default sampler runs with ``throw=False``: a trial whose draws hold too few feasible
     states gets NaN states and ends ``nonfinite`` instead of stopping the sweep, and the
@@ -464,12 +466,25 @@ def _trial_function(
         dtype = jnp.asarray(arm.frames).dtype
         key = jax.random.fold_in(jax.random.fold_in(base, m), trial)
         noise = NoiseModel(sp.astype(dtype), sr.astype(dtype)) if noisy else None
-        q_cal, T_cal, q_ver, T_ver, X = simulate_trial(
+        return simulate_trial(
             key, arm, m, d_v=d_v, d_w=d_w, noise=noise, m_verify=m_verify, sampler=draw
         )
+
+    return f
+
+
+def _solve_function(
+    solver: str, noisy: bool, max_iterations: int | None, predictive_stop: bool = True
+) -> Callable:
+    """``f(arm, q_cal, T_cal, q_ver, T_ver, X, noise_pos, noise_rot) -> dict`` of one trial's
+    outputs: the calibration by ``solver`` of simulated data and its held-out errors."""
+
+    def f(arm, q_cal, T_cal, q_ver, T_ver, X, sp, sr):
+        dtype = jnp.asarray(arm.frames).dtype
+        noise = NoiseModel(sp.astype(dtype), sr.astype(dtype)) if noisy else None
         # The table has no singular values: the solvers skip their final QR + SVD (the rank
         # they report is then the solve's own, the same number wherever it is generic).
-        kw: dict = {"singular_values": False}
+        kw: dict = {}
         if max_iterations is not None:
             kw["max_iterations"] = max_iterations
         gn = {"predictive_stop": predictive_stop}
@@ -504,24 +519,29 @@ def _trial_function(
 
 
 @functools.lru_cache(maxsize=32)
-def _batched_trials(
+def _batched_simulation(
     m: int,
-    solver: str,
     noisy: bool,
     d_v: float,
     d_w: float,
     m_verify: int,
     sampler: StateSampler | None,
-    max_iterations: int | None,
-    predictive_stop: bool = True,
 ) -> Callable:
-    """The jitted and vmapped trial function of one cell (cached across sweeps, so a repeated
-    sweep with the same settings and chunk size does not compile again; JAX compiles it once
-    per device it runs on)."""
-    f = _trial_function(
-        m, solver, noisy, d_v, d_w, m_verify, sampler, max_iterations, predictive_stop
-    )
+    """The jitted and vmapped simulation of a chunk of trials (cached across sweeps, so a
+    repeated sweep with the same settings and chunk size does not compile again; JAX compiles
+    it once per device it runs on)."""
+    f = _simulation_function(m, noisy, d_v, d_w, m_verify, sampler)
     return jit(jax.vmap(f, in_axes=(None, None, 0, 0, 0)))
+
+
+@functools.lru_cache(maxsize=32)
+def _batched_solve(
+    solver: str, noisy: bool, max_iterations: int | None, predictive_stop: bool = True
+) -> Callable:
+    """The jitted and vmapped calibration of a chunk of simulated trials by one solver (cached
+    as :func:`_batched_simulation`)."""
+    f = _solve_function(solver, noisy, max_iterations, predictive_stop)
+    return jit(jax.vmap(f, in_axes=(None, 0, 0, 0, 0, 0, 0, 0)))
 
 
 @dataclass(frozen=True)
@@ -642,8 +662,9 @@ def run_sweep(
             of a sweep with other arguments is refused (``ValueError``); remove the folder once
             the table is saved (:func:`remove_checkpoint`).
         group: run over the processes of a started :class:`cdra_jax.distributed.Group` (needs
-            ``checkpoint``, a folder all of them see). Chunk ``g`` (chunks numbered in table
-            order) is computed by process ``g mod N`` unless it is already in the checkpoint;
+            ``checkpoint``, a folder all of them see). The chunks simulated together (the same
+            rows of every solver's cell; numbered ``k`` in table order) are computed by process
+            ``k mod N`` unless they are already in the checkpoint;
             process 0 waits for the others' chunks and returns the table, the same as one
             process's (every trial depends on its key alone); the other processes return
             ``None`` once their chunks are written. :class:`cdra_jax.distributed.GroupError`
@@ -728,41 +749,47 @@ def run_sweep(
         for ci, cell in enumerate(cells)
         for start in range(0, len(cell.trials), chunk)
     ]
-    mine = [g for g in range(len(plan)) if g % n_proc == me]  # chunk g: process g mod N
+    # The cells of one pose count and noise group hold the same trials at the same noise
+    # levels, whatever their solver: a chunk of them is simulated once, for all its solvers.
+    # Chunks are assigned to processes by that shared simulation (group k: process k mod N).
+    shared = {key: k for k, key in enumerate(dict.fromkeys((c.m, c.noisy) for c in cells))}
+    starts = sorted({start for _, start, _ in plan})
+    sim_group = {
+        g: shared[(cells[ci].m, cells[ci].noisy)] * len(starts) + starts.index(start)
+        for g, (ci, start, _) in enumerate(plan)
+    }
+    mine = [g for g in range(len(plan)) if sim_group[g] % n_proc == me]
     done: dict[int, dict[str, np.ndarray]] = {}
     bar = _progress(total if me == 0 else sum(plan[g][2] - plan[g][1] for g in mine), progress)
     try:
-        for ci, cell in enumerate(cells):
-            todo = []
-            for g in mine:
-                c, start, stop = plan[g]
-                if c != ci:
-                    continue
-                if store is not None and store.has(ci, start):
-                    done[g] = store.load(ci, start)
-                    bar.update(stop - start)
-                else:
-                    todo.append(g)
-            if not todo:  # nothing left to compute here: no compilation
-                continue
-            batched = _batched_trials(
-                cell.m,
-                cell.solver,
-                cell.noisy,
-                float(d_v),
-                float(d_w),
-                int(m_verify),
-                sampler,
-                max_iterations,
-                bool(predictive_stop),
+        todo: dict[int, list[int]] = {}  # simulation group -> its chunks still to compute
+        for g in mine:
+            ci, start, stop = plan[g]
+            if store is not None and store.has(ci, start):
+                done[g] = store.load(ci, start)
+                bar.update(stop - start)
+            else:
+                todo.setdefault(sim_group[g], []).append(g)
+        for chunks in todo.values():  # nothing left to compute: no compilation
+            ci0, start, stop = plan[chunks[0]]
+            first = cells[ci0]
+            pad = chunk - (stop - start)
+            tr = np.pad(first.trials[start:stop], (0, pad), mode="edge")
+            lv = np.pad(first.levels[start:stop], ((0, pad), (0, 0)), mode="edge")
+            levels_arg = (lv[:, 0].astype(dtype), lv[:, 1].astype(dtype))
+            simulate = _batched_simulation(
+                first.m, first.noisy, float(d_v), float(d_w), int(m_verify), sampler
             )
-            for g in todo:
-                _, start, stop = plan[g]
-                pad = chunk - (stop - start)
-                tr = np.pad(cell.trials[start:stop], (0, pad), mode="edge")
-                lv = np.pad(cell.levels[start:stop], ((0, pad), (0, 0)), mode="edge")
-                args = (tr.astype(np.int32), lv[:, 0].astype(dtype), lv[:, 1].astype(dtype))
-                out = split_over_devices(batched, args, devices, arm, base)
+            data = split_over_devices(
+                simulate, (tr.astype(np.int32), *levels_arg), devices, arm, base
+            )
+            for g in chunks:
+                ci, _, _ = plan[g]
+                cell = cells[ci]
+                solve = _batched_solve(
+                    cell.solver, cell.noisy, max_iterations, bool(predictive_stop)
+                )
+                out = split_over_devices(solve, (*data, *levels_arg), devices, arm)
                 out = {k: np.asarray(v)[: stop - start] for k, v in out.items()}
                 out["trial"] = cell.trials[start:stop]
                 out["noise_pos"] = cell.levels[start:stop, 0]
@@ -773,12 +800,14 @@ def run_sweep(
                     store.save(ci, start, out)
                 done[g] = out
                 bar.update(stop - start)
+            del data
         if group is not None and me != 0:
             group.finish()
             return None
         if n_proc > 1:
             assert group is not None and store is not None
-            _gather(group, store, plan, cells, done, bar)
+            owner = {g: k % n_proc for g, k in sim_group.items()}
+            _gather(group, store, plan, cells, done, bar, owner)
     finally:
         bar.close()
     parts = [done[g] for g in range(len(plan))]
@@ -849,10 +878,13 @@ class _Checkpoint:
         write_file_atomic(self._path(cell, start), write, binary=True)
 
 
-def _gather(group: Group, store: _Checkpoint, plan, cells, done: dict, bar) -> None:
-    """Process 0: load the other processes' chunks (``plan[g]`` = ``(cell, start, stop)``)
-    into ``done`` as they appear in ``store``, advancing ``bar``; :class:`GroupError` naming
-    the missing chunks and their processes if a process fails, dies or hangs."""
+def _gather(
+    group: Group, store: _Checkpoint, plan, cells, done: dict, bar, owner: dict[int, int]
+) -> None:
+    """Process 0: load the other processes' chunks (``plan[g]`` = ``(cell, start, stop)``,
+    computed by process ``owner[g]``) into ``done`` as they appear in ``store``, advancing
+    ``bar``; :class:`GroupError` naming the missing chunks and their processes if a process
+    fails, dies or hangs."""
     others = [g for g in range(len(plan)) if g not in done]
     seen: set[int] = set()
 
@@ -868,7 +900,7 @@ def _gather(group: Group, store: _Checkpoint, plan, cells, done: dict, bar) -> N
         gone = [g for g in others if not store.has(*plan[g][:2])]
         text = [
             f"cell {plan[g][0]} (m={cells[plan[g][0]].m}, {cells[plan[g][0]].solver}) rows "
-            f"{plan[g][1]}-{plan[g][2] - 1} of process {g % group.num_processes}"
+            f"{plan[g][1]}-{plan[g][2] - 1} of process {owner[g]}"
             for g in gone[:8]
         ]
         more = f" and {len(gone) - 8} more" if len(gone) > 8 else ""

@@ -395,3 +395,21 @@ def test_the_auto_solver_asks_for_float64(arm):
     q = np.zeros((4, arm.dof))
     with jax.enable_x64(False), pytest.raises(ValueError, match="needs float64"):
         calibrate_auto(arm, q, None, np.zeros((4, 3, 3)), ("a", "b", "c"))
+
+
+def test_huber_constants_are_the_chi_square_ones():
+    """The auto solver's Huber threshold and consistency factor (literal and closed form, so
+    that importing the package does not load scipy.stats) against scipy."""
+    import math
+
+    import scipy.integrate
+    import scipy.stats
+
+    from cdra_jax.calibration import auto
+
+    c = math.sqrt(float(scipy.stats.chi2.ppf(0.95, 3)))
+    assert auto.UNIT_HUBER_C == pytest.approx(c, rel=1e-15)
+    chi3 = scipy.stats.chi(3)
+    inner = scipy.integrate.quad(lambda r: r * r * chi3.pdf(r), 0.0, c)[0]
+    outer = scipy.integrate.quad(lambda r: c * r * chi3.pdf(r), c, np.inf)[0]
+    assert auto.HUBER_CONSISTENCY == pytest.approx((inner + outer) / 3.0, rel=1e-12)

@@ -127,10 +127,10 @@ def test_every_pose_a_sweep_draws_has_tension_closure(cdra, table, monkeypatch):
         return out
 
     monkeypatch.setattr(sweeps, "simulate_trial", recording)
-    # trace the cell again, with the recording, in a cache of its own: the original cache (the
-    # cell without the recording, traced for the fixture) comes back with monkeypatch's undo
-    fresh = functools.lru_cache(maxsize=32)(sweeps._batched_trials.__wrapped__)
-    monkeypatch.setattr(sweeps, "_batched_trials", fresh)
+    # trace the simulation again, with the recording, in a cache of its own: the original cache
+    # (without the recording, traced for the fixture) comes back with monkeypatch's undo
+    fresh = functools.lru_cache(maxsize=32)(sweeps._batched_simulation.__wrapped__)
+    monkeypatch.setattr(sweeps, "_batched_simulation", fresh)
     recorded = run_sweep(cdra, LEVELS, [5], trials=3, **CELL)
     _assert_same_trials(table, recorded)
     q = np.concatenate([x.reshape(-1, cdra.dof) for x in drawn])

@@ -26,12 +26,11 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from matplotlib.figure import Figure
 
 from .. import lie
 from ..arm import TWIST_COMPONENTS, Arm, error_twists
@@ -79,9 +78,11 @@ from ..physics import (
     prediction_error_table,
     refine,
 )
-from ..plots import calibration_residuals_figure
 from ..uncertainty import analyze_uncertainty
 from .inputs import Data, Model, check_range, resolve_arm, resolve_measurements
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 SOLVERS: tuple[str, ...] = ("auto", "paper", "weighted", "lm")
 """Solver names, the same in every command and function of the package:
@@ -276,6 +277,8 @@ class CalibrationRun:
     def plot(self) -> Figure:
         """Per-pose residuals of the nominal and calibrated models and the convergence
         (:func:`cdra_jax.plots.calibration_residuals_figure`)."""
+        from ..plots import calibration_residuals_figure
+
         return calibration_residuals_figure(self.result)
 
 
@@ -810,6 +813,7 @@ GAUGE_TEXT = (
     "auto solver registered the base to the measuring device and no exact move along the "
     "unidentifiable directions reaches the nominal gauge, that registered start model"
 )
+
 """How every solver's result fixes what the data cannot determine
 (:mod:`cdra_jax.calibration.gauge`)."""
 

@@ -16,16 +16,18 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import equinox as eqx
 import numpy as np
-from matplotlib.figure import Figure
 
-from .. import plots, reproduction
+from .. import reproduction
 from ..io import default_arm, save_figure_atomic, write_text_atomic
 from ..io.results import package_version
 from .inputs import check_seed
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 class DemoSizes(eqx.Module):
@@ -153,6 +155,8 @@ class DemoRun:
 
     def figures(self) -> dict[str, Figure]:
         """Fig. 5 and the two panels of Fig. 7, by output file name."""
+        from .. import plots
+
         return {
             "fig5_convergence.png": plots.convergence_figure(self.convergence),
             "fig7_noise.png": plots.noise_figure(self.noise),
@@ -161,6 +165,8 @@ class DemoRun:
 
     def plot(self) -> Figure:
         """Fig. 7: held-out accuracy against the number of calibration poses."""
+        from .. import plots
+
         return plots.noise_figure(self.noise)
 
     def save(self, folder: str | os.PathLike, *, force: bool = False) -> list[Path]:

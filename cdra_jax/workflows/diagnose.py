@@ -12,18 +12,18 @@ import dataclasses
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
-
-from matplotlib.figure import Figure
+from typing import TYPE_CHECKING, Any
 
 from ..arm import Arm
 from ..calibration import NoiseModel
-from ..diagnosis import Diagnosis
-from ..diagnosis import diagnose as _diagnose
 from ..io import Measurements, arm_to_dict, save_model
-from ..plots import residual_vs_regressors_figure, save_diagnosis_plots
 from .inputs import Data, Model, check_range, check_seed, resolve_arm, resolve_measurements
 from .result import JsonResult
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ..diagnosis import Diagnosis
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -73,10 +73,14 @@ class DiagnosisRun(JsonResult):
 
     def plot(self) -> Figure:
         """Held-out residuals against every regressor, before and after the refit."""
+        from ..plots import residual_vs_regressors_figure
+
         return residual_vs_regressors_figure(self.arm, self.measurements, self.diagnosis)
 
     def save_plots(self, folder: str | os.PathLike, *, force: bool = False) -> Sequence[Path]:
         """Write the diagnosis figures (PNG) into ``folder``; returns the paths."""
+        from ..plots import save_diagnosis_plots
+
         return save_diagnosis_plots(
             self.arm, self.measurements, self.diagnosis, folder, force=force
         )
@@ -110,5 +114,7 @@ def diagnose(
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
     arm, model_label = resolve_arm(model, model_label)
     meas, data_label, _ = resolve_measurements(data, arm, data_label)
+    from ..diagnosis import diagnose as _diagnose  # here: the other commands do not load it
+
     d = _diagnose(arm, meas, noise, seed=seed, folds=folds, alpha=alpha)
     return DiagnosisRun(arm, meas, d, model_label, data_label)

@@ -15,10 +15,9 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from ..arm import Arm
 from ..io.files import write_text_atomic
@@ -26,6 +25,9 @@ from ..io.model import load_model
 from ..io.results import package_version
 from ..io.urdf import apply_arm_to_urdf, chain_arm, not_held, read_urdf, urdf_text
 from .import_model import plot_chain
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -14,18 +14,19 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from ..arm import Arm, forward_kinematics
 from ..io.dh import CONVENTIONS, arm_from_dh, load_dh
 from ..io.files import write_text_atomic
 from ..io.model import arm_to_dict, dumps_model
 from ..io.urdf import load_urdf_chain
-from ..plots import new_figure
 from .result import JsonResult
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def chain_points(arm: Arm) -> np.ndarray:
@@ -38,6 +39,8 @@ def chain_points(arm: Arm) -> np.ndarray:
 
 def plot_chain(arm: Arm, title: str = "") -> Figure:
     """A 3D sketch of the chain at ``q = 0``: joint (module) origins joined by lines, mm."""
+    from ..plots import new_figure
+
     fig = new_figure(5.5, 5.0)
     ax: Any = fig.add_subplot(projection="3d")
     pts = chain_points(arm)

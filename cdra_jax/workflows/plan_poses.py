@@ -16,17 +16,15 @@ import io
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
-from matplotlib.figure import Figure
 
 from ..arm import Arm
 from ..calibration import NoiseModel
 from ..io.files import write_text_atomic
 from ..physics import needed_aux
-from ..plots import new_figure
 from ..pose_selection import (
     CRITERIA,
     DEFAULT_CRITERION,
@@ -37,6 +35,9 @@ from ..pose_selection import (
 from ..uncertainty import predicted_pose_covariance
 from .inputs import Model, check_range, check_seed, resolve_arm
 from .result import JsonResult
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 DEFAULT_NOISE = NoiseModel(position_mm=0.08, rotation_rad=1e-3)
 """The measuring device assumed when none is given: the paper's FARO arm (Section VI, 80 um),
@@ -159,6 +160,8 @@ class PosePlan(JsonResult):
 
     def plot(self) -> Figure:
         """Expected RMS position accuracy of the plan against that of random pose sets."""
+        from ..plots import new_figure
+
         fig = new_figure(6.0, 3.6)
         ax = fig.add_subplot()
         ax.hist(self.random_dp_mm, bins=10, color="0.7", label=f"{len(self.states)} random poses")

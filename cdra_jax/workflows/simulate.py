@@ -18,12 +18,11 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
 from jax.typing import ArrayLike
-from matplotlib.figure import Figure
 
 from .. import lie
 from ..arm import Arm, apply_frame_errors, tool_pose
@@ -42,10 +41,12 @@ from ..io.model import effects_to_list
 from ..io.results import package_version
 from ..modules.cable_data import simulate_cable_lengths
 from ..physics import corrected_tool_pose, model_effects, model_features, needed_aux
-from ..plots import new_figure
 from ..simulation import add_measurement_noise, random_frame_errors, sample_poses
 from .calibrate import frame_table
 from .inputs import Model, check_range, check_seed, resolve_arm
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 _FILE_KEYS = ("format", "format_version", "frames")
 DEFAULT_D_V_MM = 1.0
@@ -149,6 +150,8 @@ class SimulationRun:
 
     def plot(self) -> Figure:
         """The preset error twist of each frame: translation (mm) and rotation (rad) bars."""
+        from ..plots import new_figure
+
         fig = new_figure(10.0, 3.6)
         names = list(self.arm.frame_names)
         x = np.arange(len(names))

@@ -13,15 +13,15 @@ import dataclasses
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
-
-from matplotlib.figure import Figure
+from typing import TYPE_CHECKING, Any
 
 from ..distributed import DEFAULT_TIMEOUT, check_group, start_group
-from ..plots import plot_sweep_figure
 from ..sweeps import SweepTable, parse_noise_levels, run_sweep
 from .inputs import Model, check_range, check_seed, resolve_arm
 from .result import JsonResult
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -80,6 +80,8 @@ class SweepRun(JsonResult):
 
     def plot(self) -> Figure:
         """Median held-out ``dp`` and ``dR`` against ``m`` with 10-90 % bands."""
+        from ..plots import plot_sweep_figure
+
         return plot_sweep_figure(self.table)
 
 

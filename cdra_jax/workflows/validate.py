@@ -19,10 +19,9 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Mapping
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from ..arm import Arm
 from ..calibration.observations import (
@@ -34,10 +33,12 @@ from ..calibration.observations import (
 from ..calibration.registration import initial_guess
 from ..io import Measurements, load_result
 from ..physics import RefitData, check_effect_data, model_tool_pose, prediction_error_table
-from ..plots import validation_figure
 from .calibrate import result_arm
 from .inputs import Data, Model, resolve_arm, resolve_measurements
 from .result import JsonResult
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 class PredictionErrors(NamedTuple):
@@ -218,6 +219,8 @@ class ValidationRun(JsonResult):
     def plot(self) -> Figure:
         """Per-row errors of the model and the reference, side by side
         (:func:`cdra_jax.plots.validation_figure`)."""
+        from ..plots import validation_figure
+
         return validation_figure(self.to_dict(), reference=self.reference)
 
 
