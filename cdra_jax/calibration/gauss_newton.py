@@ -285,11 +285,7 @@ def _paper_solver(
             Z = null_basis(frames, null_modules, xi)
             # Whether the data resolve every identifiable direction, and whether the analytic
             # basis is null, are properties of the pose set: tested at the first step only.
-            X, smallest, structural = jax.lax.cond(
-                it == 0,
-                lambda: null_space_solve(N, g, Z),
-                lambda: null_space_solve(N, g, Z, check=False),
-            )
+            X, smallest, structural = null_space_solve(N, g, Z, check=it == 0)
             trusted = (smallest >= RESOLVED_PIVOT) & (structural <= STRUCTURAL_TOL)
             # A factorisation that broke down (NaN) on finite data is not a non-finite
             # problem: the step is not taken and the trial is redone with SVD steps.

@@ -238,7 +238,7 @@ factorisation would drop too."""
 
 
 def null_space_solve(
-    N: ArrayLike, g: ArrayLike, Z: ArrayLike, *, check: bool = True
+    N: ArrayLike, g: ArrayLike, Z: ArrayLike, *, check: bool | Array = True
 ) -> tuple[Array, Array, Array]:
     """``N^+ g`` for ``g`` in the range of ``N`` when the null space of ``N`` is known.
 
@@ -280,7 +280,7 @@ def null_space_solve(
     Args:
         N: ``(n, n)`` ``D~^T D~``. g: ``(n,)`` ``D~^T Y~``. Z: ``(n, k)`` orthonormal basis of
             the null space of ``N`` (:mod:`.nullspace`); ``k = 0`` for none.
-        check: compute the two tests (static).
+        check: compute the two tests: a bool, or a boolean scalar (a ``lax.cond``).
 
     Returns:
         ``(x (n,), smallest, structural)``: the step, the estimate of ``lambda_min(A_s)`` (NaN
@@ -294,26 +294,32 @@ def null_space_solve(
     d = jnp.sqrt(jnp.diagonal(N))
     s = 1.0 / d
     A = N * s[:, None] * s[None, :]
-    structural = jnp.zeros((), N.dtype)
-    if k:
-        Zs = orthonormalise(Z * d[:, None])
-        if check:  # max |A_s Z_s|, column by column
-            AZ = [jnp.sum(A * Zs[None, :, c], axis=1) for c in range(k)]
-            structural = jnp.max(jnp.abs(jnp.stack(AZ)))
-        A = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k))
-    L = jnp.linalg.cholesky(A)
+    Zs = orthonormalise(Z * d[:, None]) if k else Z
+    A_aug = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k)) if k else A
+    L = jnp.linalg.cholesky(A_aug)
 
     def solve(b):
         return jax.scipy.linalg.cho_solve((L, True), b)
 
     x = s * solve(s * g)
-    if check:
-        y = solve(jnp.asarray(_probe(n), N.dtype))
-        smallest = jnp.linalg.norm(y) / jnp.linalg.norm(solve(y))
-    else:
-        smallest = jnp.asarray(jnp.inf, N.dtype)
     if k:
         x = x - sum(Z[:, c] * jnp.dot(Z[:, c], x) for c in range(k))
+
+    def tests():
+        y = solve(jnp.asarray(_probe(n), N.dtype))
+        smallest = jnp.linalg.norm(y) / jnp.linalg.norm(solve(y))
+        # max |A_s Z_s|, column by column
+        AZ = [jnp.sum(A * Zs[None, :, c], axis=1) for c in range(k)]
+        structural = jnp.max(jnp.abs(jnp.stack(AZ))) if k else jnp.zeros((), N.dtype)
+        return smallest, structural
+
+    def skipped():
+        return jnp.asarray(jnp.inf, N.dtype), jnp.zeros((), N.dtype)
+
+    if isinstance(check, bool):
+        smallest, structural = tests() if check else skipped()
+    else:  # a traced scalar: a branch (real where it is unbatched, as the paper solver's)
+        smallest, structural = jax.lax.cond(check, tests, skipped)
     return x, smallest, structural
 
 
