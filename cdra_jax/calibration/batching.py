@@ -68,12 +68,7 @@ def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) ->
 
         @wrapped.def_vmap
         def _rule(axis_size, in_batched, *args):
-            # Broadcast the unbatched arguments, so that every leaf has the batch axis in front.
-            args = jax.tree.map(
-                lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
-                list(args),
-                list(in_batched),
-            )
+            args = _batched_args(axis_size, in_batched, args)
             if second_pass:
                 out = two_pass(chunk_fn, chunk_size, *args)
             elif axis_size <= chunk_size:
@@ -196,17 +191,23 @@ def chunked_loop(
 
         @wrapped.def_vmap
         def _rule(axis_size, in_batched, *args):
-            args = jax.tree.map(
-                lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
-                list(args),
-                list(in_batched),
-            )
+            args = _batched_args(axis_size, in_batched, args)
             out = multi_pass(chunk_fn, chunk_size, passes, *args)
             return out, jax.tree.map(lambda _: True, out)
 
         return wrapped(*args)
 
     return call
+
+
+def _batched_args(axis_size: int, in_batched, args) -> list:
+    """The arguments of a ``custom_vmap`` rule with the unbatched ones broadcast, so that every
+    leaf has the batch axis in front."""
+    return jax.tree.map(
+        lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
+        list(args),
+        list(in_batched),
+    )
 
 
 def _next_mode(result, mode):

@@ -60,8 +60,7 @@ from .nullspace import null_basis, null_generators
 from .solution import (
     RESULTS,
     CalibrationSolution,
-    _assemble_solution,
-    _singular_values,
+    _finished_solution,
     _solve_problem,
     dtype_default,
 )
@@ -333,25 +332,25 @@ def _paper_solver(
         frames0, P, T, _, noise = data
         n = 6 * frames0.shape[0]
         fast = normal_equations_apply(T.dtype, rcond, 6 * T.shape[-1], n)
-        if singular_values:
-            lin = kernels.linearise(frames, P, T, noise)
-            sv, rank = _singular_values(lin.DT, rcond)
-        else:  # the rank is the steps'
-            sv, rank = jnp.full((n,), jnp.nan, T.dtype), rank_hi
-        sol = _assemble_solution(
+        sol = _finished_solution(
             frames,
             frames0,
-            ok=ok & jnp.isfinite(dps[k]) & jnp.isfinite(dRs[k]),
-            done=done,
+            P,
+            T,
+            noise,
+            singular_values=singular_values,
+            rcond=rcond,
+            rank=rank_hi,
             iterations=k,
             step_norm=steps,
             delta_p=dps,
             delta_R=dRs,
-            rank=rank,
-            singular_values=sv,
             cost=cost,
+            done=done,
+            ok=ok,
             solver=solver,
         )
+        rank = sol.rank
         redo = (sol.result != RESULTS.nonfinite) & (k > 0) & fast & (mode != _SVD)
         redo = redo & ((rank_lo != rank) | (rank_hi != rank) | ~resolved)
         return sol, jnp.where(redo, _SVD, 0)

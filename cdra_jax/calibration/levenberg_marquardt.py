@@ -84,8 +84,7 @@ from .nullspace import null_basis, null_generators
 from .solution import (
     RESULTS,
     CalibrationSolution,
-    _assemble_solution,
-    _singular_values,
+    _finished_solution,
     _solve_problem,
     dtype_default,
 )
@@ -310,24 +309,25 @@ def _lm_solver(
         frames0, P, T, _, noise = data
         dtype = T.dtype
         n = 6 * frames0.shape[0]
-        if singular_values:
-            sv, rank = _singular_values(kernels.linearise(frames, P, T, noise).DT, rcond)
-        else:
-            sv, rank = jnp.full((n,), jnp.nan, dtype), basis_rank
-        sol = _assemble_solution(
+        sol = _finished_solution(
             frames,
             frames0,
-            ok=ok & jnp.isfinite(dps[k]) & jnp.isfinite(dRs[k]),
-            done=done,
+            P,
+            T,
+            noise,
+            singular_values=singular_values,
+            rcond=rcond,
+            rank=basis_rank,
             iterations=k,
             step_norm=steps,
             delta_p=dps,
             delta_R=dRs,
-            rank=rank,
-            singular_values=sv,
             cost=cost,
+            done=done,
+            ok=ok,
             solver="lm",
         )
+        rank = sol.rank
         fast = normal_equations_apply(dtype, rcond, 6 * T.shape[-1], n)
         redo = (sol.result != RESULTS.nonfinite) & fast & (mode != _SVD)
         redo = redo & ((basis_rank != rank) | ~resolved)
@@ -357,7 +357,7 @@ def _identifiable_basis(lin: kernels.Linearisation, rcond: float | None) -> Arra
     QR decomposition ``D~ = Q R`` (Householder, backward stable): ``R = U_R S V^T``, so that
     ``D~ = (Q U_R) S V^T``. That costs about 0.7 of the SVD of the ``(6m, n)`` matrix itself
     (15 CDRA poses: 118 against 161 us per trial, batched), as for the reported singular values
-    (:func:`.solution._solution_at`).
+    (:func:`.solution._singular_values`).
     """
     A = lin.DT.T
     if A.shape[-2] > A.shape[-1]:

@@ -12,7 +12,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from ..arm import Arm, error_twists, module_poses
-from . import implicit
+from . import implicit, kernels
 from .model import NoiseModel
 from .validation import check_noise, check_problem
 
@@ -213,37 +213,47 @@ def _singular_values(DT: Array, rcond: float | None) -> tuple[Array, Array]:
     return s, jnp.sum(s > rc * s[..., :1], axis=-1)
 
 
-def _solution_at(
+def _finished_solution(
     frames: Array,
-    nominal: Array,
-    lin,
+    frames0: Array,
+    poses: Array,
+    measured: Array,
+    noise: NoiseModel | None,
     *,
-    ok: Array,
+    singular_values: bool,
     rcond: float | None,
-    rank: Array | None = None,
-    **history,
+    rank: Array,
+    iterations: Array,
+    step_norm: Array,
+    delta_p: Array,
+    delta_R: Array,
+    cost: Array,
+    done: Array,
+    ok: Array,
+    solver: str,
 ) -> CalibrationSolution:
-    """:func:`_assemble_solution` at the final model of a solve, from its linearisation ``lin``
-    (a :class:`.kernels.Linearisation`): the rank and singular values of the whitened Eq. 9
-    Jacobian (cut-off ``rcond``, default :func:`.linear.default_rcond`), the cost ``|Y~|^2``, and
-    ``ok`` only where Eqs. 20-21 are finite. ``history``: ``done``, ``iterations``,
-    ``step_norm``, ``delta_p``, ``delta_R``, ``solver`` as for :func:`_assemble_solution`.
-
-    With ``rank`` given (the solve's own, e.g. ``n - k`` of the structural null space) the QR
-    and SVD are skipped: that rank is reported and the singular values are NaN (the solvers'
-    ``singular_values=False``; 20 % of a paper solve of 15 CDRA poses).
-    """
-    n = 6 * nominal.shape[-3]
-    if rank is None:
-        s, rank = _singular_values(lin.DT, rcond)
+    """:func:`_assemble_solution` of a solve that recorded its histories and cost as it went
+    (``delta_p[iterations]`` and ``delta_R[iterations]`` are those of ``frames``): with
+    ``singular_values`` (static) those of the Jacobian at ``frames`` and their rank (a QR and an
+    SVD, once), else NaN and ``rank``, the solve's own. ``poses`` ``(K, 3, 4, m)`` and
+    ``measured`` ``(3, 4, m)`` in the pose-last layout of :mod:`.kernels`."""
+    n = 6 * frames0.shape[-3]
+    if singular_values:
+        sv, rank = _singular_values(kernels.linearise(frames, poses, measured, noise).DT, rcond)
     else:
-        s = jnp.full((n,), jnp.nan, lin.Y.dtype)
+        sv = jnp.full((n,), jnp.nan, measured.dtype)
+    k = iterations
     return _assemble_solution(
         frames,
-        nominal,
-        ok=ok & jnp.isfinite(lin.delta_p) & jnp.isfinite(lin.delta_R),
+        frames0,
+        ok=ok & jnp.isfinite(delta_p[k]) & jnp.isfinite(delta_R[k]),
+        done=done,
+        iterations=k,
+        step_norm=step_norm,
+        delta_p=delta_p,
+        delta_R=delta_R,
         rank=rank,
-        singular_values=s,
-        cost=jnp.sum(lin.Y * lin.Y),
-        **history,
+        singular_values=sv,
+        cost=cost,
+        solver=solver,
     )
