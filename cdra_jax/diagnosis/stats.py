@@ -512,6 +512,7 @@ STRUCTURE_RIDGE = 1.0
 """Ridge of the structure test's kernel smoother (whitened units: a prior signal variance equal
 to the noise variance)."""
 
+
 @dataclass
 class Structure:
     """Whether the residual is predictable from the rows' regressors (:func:`structure_test`).

@@ -151,6 +151,13 @@ class Effect:
         """Module or frame names this effect can sit at."""
         raise NotImplementedError
 
+    def joins(self, other: Effect) -> bool:
+        """Whether this form may be refitted together with ``other``, another form of the same
+        effect at the same place (the diagnosis adds forms to a selected one where they pay).
+        Every form by default; a form that describes one mechanism with one hidden constant
+        (a drum's radius, a warm-up's time constant) joins only forms that agree on it."""
+        return True
+
     def parameters(self, arm: Arm, location: str) -> tuple[ParameterSpec, ...]:
         """The physical parameters at ``location``."""
         raise NotImplementedError

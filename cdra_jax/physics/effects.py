@@ -649,6 +649,10 @@ class PeriodicError(ModuleEffect):
         self.harmonics = _harmonics(harmonics)
         self.variant = "k=" + ",".join(map(str, self.harmonics))
 
+    def joins(self, other):
+        """Harmonics of the joint angle join one another, not a drum's."""
+        return isinstance(other, PeriodicError)
+
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
         unit = "mm" if mod.kind == "prismatic" else "rad"
@@ -718,6 +722,10 @@ class DrumPeriodicError(_CableEffect):
         self.radius_mm = float(radius_mm)
         self.variant = f"drum r={self.radius_mm:g}mm k=" + ",".join(map(str, self.harmonics))
         self.refinement = 1 not in self.harmonics  # overtones alone refine the fundamental
+
+    def joins(self, other):
+        """A drum has one radius: only its own harmonics join."""
+        return isinstance(other, DrumPeriodicError) and other.radius_mm == self.radius_mm
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -896,6 +904,14 @@ class ThermalDrift(Effect):
         self.tau_s = None if tau_s is None else float(tau_s)
         self.refinement = tau_s is not None
         self.variant = "" if tau_s is None else f"warm-up tau={self.tau_s:g}s"
+
+    def joins(self, other):
+        """A warm-up has one time constant: the drift rate joins any, two warm-ups do not."""
+        return not (
+            isinstance(other, ThermalDrift)
+            and None not in (self.tau_s, other.tau_s)
+            and self.tau_s != other.tau_s
+        )
 
     def locations(self, arm):
         return arm.frame_names[:1]
