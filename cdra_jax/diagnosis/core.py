@@ -777,6 +777,7 @@ def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) ->
     after = before
     refit_info: dict = {}
     fit: _Fit | None = None
+    ties: list[_Fit] = []  # other effects whose refits predict held-out poses as well
     y_model = y_base  # the written model: the base model's fit ...
     free: np.ndarray | None = None  # ... and the parameters fitted with the named effect
     rival: dict | None = None
@@ -786,7 +787,7 @@ def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) ->
     ]
     lin = _Linearised(problem, layout, arm, r, D, J, fold, given, y_base, cols)
     if mismatch and significant:
-        fit = _select(significant, evals, lin, s.live)
+        fit, ties = _select(significant, evals, lin, s.live)
         best = fit.lead
         refit_info = fit.info
         parameters = fit.parameters
@@ -863,6 +864,19 @@ def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) ->
     elif mismatch:
         effect_name = "unattributed"
 
+    indistinguishable: dict | None = None
+    if located_in is not None and fit is not None and ties:
+        indistinguishable = {
+            "within_nats": RIVAL_NATS,
+            "candidates": [
+                {
+                    "candidate": f.lead.label,
+                    "variant": f.lead.variant or None,
+                    "heldout_loglik": float(f.heldout.loglik),
+                }
+                for f in [fit, *ties]
+            ],
+        }
     close_rivals = []
     if located_in is not None and fit is not None:
         top = by_key[(fit.lead.name, fit.lead.location)].heldout_gain or 0.0
@@ -982,6 +996,7 @@ def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) ->
             "structure_by_location": structure_rows,
             "best_candidate": None if fit is None else fit.lead.label,
             "close_rivals": close_rivals,
+            "indistinguishable": indistinguishable,
             "location_source": location_source,
         },
     )
@@ -1020,11 +1035,12 @@ class _Linearised:
 
 def _select(
     significant: Sequence[Candidate], evals: dict, lin: _Linearised, live: Sequence[Candidate]
-) -> _Fit:
+) -> tuple[_Fit, list[_Fit]]:
     """The refit of the significant candidates whose merit is within :data:`RIVAL_NATS` or
     :data:`CONTENDER_FRACTION` of the best one's (at most :data:`MAX_CONTENDERS`) that
-    predicts held-out poses best; a physically implausible refit only where every
-    contender's is."""
+    predicts held-out poses best (a physically implausible refit only where every
+    contender's is), and the other contenders' plausible refits that predict held-out poses
+    within :data:`RIVAL_NATS` of it: these poses cannot tell them apart."""
     top = max(evals[c]["merit"] for c in significant)
     margin = max(RIVAL_NATS, CONTENDER_FRACTION * top)
     contenders = sorted(
@@ -1032,7 +1048,15 @@ def _select(
         key=lambda c: -evals[c]["merit"],
     )[:MAX_CONTENDERS]
     fits = [_fit_effect(c, lin, live) for c in contenders]
-    return max(fits, key=lambda f: (not _implausible(f.parameters), f.heldout.loglik))
+    best = max(fits, key=lambda f: (not _implausible(f.parameters), f.heldout.loglik))
+    ties = [
+        f
+        for f in fits
+        if f is not best
+        and not _implausible(f.parameters)
+        and f.heldout.loglik >= best.heldout.loglik - RIVAL_NATS
+    ]
+    return best, ties
 
 
 def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) -> _Fit:
@@ -1041,18 +1065,22 @@ def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) 
     The chains of forms (:func:`_chains`) of the tested form and of the :data:`MAX_CHAINS`
     - 1 best others are refitted, each growing further forms on the model linearised at its
     refit while they pay (up to :data:`MAX_REFINEMENTS`; a large effect moves the solution
-    far from the geometric fit, where the first linearisation was made). The tested form's
-    refit is kept unless another predicts held-out poses better by more than its extra
-    parameters cost (:func:`_pays`); a physically implausible refit only where every one is,
-    after the forms added last are dropped one by one and the plainest forms of the effect
-    at the place are tried (a richer or more flexible form that comes out impossible, such as
+    far from the geometric fit, where the first linearisation was made). Of these refits, the
+    one with the fewest parameters (ties: the tested form's) is kept unless a larger one
+    predicts held-out poses better by more than the parameters of its forms that the kept one
+    lacks cost (:func:`_pays`, :func:`_extra`); a physically
+    implausible refit only where every one is, after the forms added last are dropped one by
+    one (:func:`_plausible_prefix`) and the plainest forms of the effect at the place are
+    tried (a richer or more flexible form that comes out impossible, such as
     a negative per-cable compliance, stands in for noise or for another shape)."""
     r, D, J, fold, cols = lin.r, lin.D, lin.J, lin.fold, lin.cols
     place = [c for c in live if (c.name, c.location) == (tested.name, tested.location)]
     chains = _chains(tested, place, cols, r, D, J, fold, lin.arm)[:MAX_CHAINS]
     fits = [_plausible_prefix(_grow(_refit(f, g, lin), place, lin), lin) for f, g in chains]
     kept: _Fit | None = None
-    for fit in fits:
+    # the fewest parameters first (ties: the tested form's chain): a larger one replaces it
+    # only where it pays for what it adds
+    for fit in sorted(fits, key=lambda f: _columns(f.forms, cols).size):
         if _implausible(fit.parameters):
             continue
         if kept is None or _pays(_fit_score(kept), _fit_score(fit), _extra(fit, kept, cols)):
@@ -1094,8 +1122,10 @@ def _fit_score(fit: _Fit) -> tuple[float, float]:
 
 
 def _extra(fit: _Fit, than: _Fit, cols: dict) -> int:
-    """How many more parameters ``fit``'s forms have than ``than``'s (at least one)."""
-    return max(1, int(_columns(fit.forms, cols).size - _columns(than.forms, cols).size))
+    """The parameters of ``fit``'s forms that ``than`` does not have (at least one): what a
+    switch from ``than`` to ``fit`` must pay for."""
+    new = [c for c in fit.forms if c not in than.forms]
+    return max(1, int(_columns(new, cols).size)) if new else 1
 
 
 def _grow(fit: _Fit, place: Sequence[Candidate], lin: _Linearised) -> _Fit:
@@ -1324,13 +1354,14 @@ def _chains(best, place, cols, r, D, J, fold, arm):
     tested form ``best`` first, then those from the other forms at the place (``place``:
     its variants and refinements), the best held-out prediction first.
 
-    From each start, forward selection adds the forms that join it (:func:`_joins`,
-    :func:`_best_addition`): a drum radius or a harmonic that the F test ranked second may,
-    with its overtone, describe the data better; a refinement such as a settling drift may
-    replace the form it refines. A form joins only where the linearised estimates of the
-    chain with it stay physically plausible (a power law that joins a linear stretch by
-    turning its compliances negative describes another shape). ``gains``: the held-out
-    log-likelihood gain each form added (the first: over the geometric fit).
+    From each start (a tested form, or a refinement that is a complete form by itself,
+    :attr:`~cdra_jax.physics.Effect.alone`), forward selection adds the forms that join it
+    (:func:`_joins`, :func:`_best_addition`): a drum radius or a harmonic that the F test
+    ranked second may, with its overtone, describe the data better; a refinement such as a
+    settling drift may replace the form it refines. A form joins only where the linearised
+    estimates of the chain with it stay physically plausible (a power law that joins a
+    linear stretch by turning its compliances negative describes another shape). ``gains``:
+    the held-out log-likelihood gain each form added (the first: over the geometric fit).
     """
     geometric = stats.heldout(r, D, fold).loglik
 
@@ -1362,7 +1393,8 @@ def _chains(best, place, cols, r, D, J, fold, arm):
             base = sc
         return forms, gains, base[0]
 
-    others = sorted((chain(c) for c in place if c is not best), key=lambda t: -t[2])
+    starts = [c for c in place if c is not best and (not c.effect.refinement or c.effect.alone)]
+    others = sorted((chain(c) for c in starts), key=lambda t: -t[2])
     out, seen = [], set()
     for forms, gains, _ in [chain(best), *others]:
         if frozenset(forms) not in seen:  # the same forms reached from another start

@@ -244,7 +244,20 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "or the effect is a stand-in for another one)."
             )
         row = next(c for c in d.candidates if c.selected)
-        rivals = det.get("close_rivals") or []
+        tied = (det.get("indistinguishable") or {}).get("candidates") or []
+        if tied:
+            lines.append(
+                "Indistinguishable on these poses: "
+                + " or ".join(t["candidate"] for t in tied)
+                + " (each refitted, their held-out log-likelihoods within "
+                f"{det['indistinguishable']['within_nats']:g} nats; the first is reported): "
+                "poses that separate them, or less noise, would tell which."
+            )
+        rivals = [
+            r
+            for r in det.get("close_rivals") or []
+            if r["candidate"] not in {t["candidate"] for t in tied}
+        ]
         if rivals:
             lines.append(
                 "Nearly as well supported on held-out poses: "

@@ -146,6 +146,10 @@ class Effect:
     """A richer term of an effect (e.g. a load-hardening correction of a compliance) that is not
     tested on its own: the diagnosis adds it to a selected effect at the same location only
     where it pays for itself in held-out likelihood (see :mod:`cdra_jax.diagnosis`)."""
+    alone: bool = False
+    """For a refinement: whether it is a complete form of the effect by itself (a settling
+    drift, a power-law stretch), which may then replace the form it refines in a refit; a
+    correction term (a load-hardening term, an overtone) only joins another form."""
 
     def locations(self, arm: Arm) -> tuple[str, ...]:
         """Module or frame names this effect can sit at."""

@@ -410,9 +410,10 @@ class CableElasticity(_CableEffect):
       different stiffnesses), holding tensions;
     * ``"quadratic"`` (a refinement, never tested alone): the second-order term ``c2 t_i^2`` of
       a tension-dependent stiffness (negative for a cable that stiffens as it is loaded);
-    * ``"power0.5"``, ``"power0.75"`` (refinements): a power-law stretch
-      ``c t_ref (t_i / t_ref)^p`` (``t_ref`` = :data:`POWER_TENSION_N`), the usual empirical
-      law of a rope or braided cable that stiffens as its strands bed in.
+    * ``"power0.5"``, ``"power0.75"`` (refinements that may also replace the form they refine,
+      :attr:`Effect.alone`): a power-law stretch ``c t_ref (t_i / t_ref)^p`` (``t_ref`` =
+      :data:`POWER_TENSION_N`), the usual empirical law of a rope or braided cable that
+      stiffens as its strands bed in.
     """
 
     name = "cable_elasticity"
@@ -424,6 +425,7 @@ class CableElasticity(_CableEffect):
 
     def __init__(self, form: str = "holding"):
         self._set_form(form)
+        self.alone = form.startswith("power")  # a complete stretch law of its own
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -903,6 +905,7 @@ class ThermalDrift(Effect):
             raise ValueError(f"thermal drift time constant must be positive, got {tau_s!r}")
         self.tau_s = None if tau_s is None else float(tau_s)
         self.refinement = tau_s is not None
+        self.alone = True  # a settling drift is a complete drift of its own
         self.variant = "" if tau_s is None else f"warm-up tau={self.tau_s:g}s"
 
     def joins(self, other):
