@@ -872,7 +872,7 @@ def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) ->
                 {
                     "candidate": f.lead.label,
                     "variant": f.lead.variant or None,
-                    "heldout_loglik": float(f.heldout.loglik),
+                    "heldout_sum_of_squares": float(f.heldout.sum_of_squares),
                 }
                 for f in [fit, *ties]
             ],
@@ -1038,9 +1038,10 @@ def _select(
 ) -> tuple[_Fit, list[_Fit]]:
     """The refit of the significant candidates whose merit is within :data:`RIVAL_NATS` or
     :data:`CONTENDER_FRACTION` of the best one's (at most :data:`MAX_CONTENDERS`) that
-    predicts held-out poses best (a physically implausible refit only where every
-    contender's is), and the other contenders' plausible refits that predict held-out poses
-    within :data:`RIVAL_NATS` of it: these poses cannot tell them apart."""
+    predicts held-out poses best (the smallest held-out sum of squares; a physically
+    implausible refit only where every contender's is), and the other contenders' plausible
+    refits whose held-out sum of squares is within ``2 RIVAL_NATS`` of it (a log-likelihood
+    ratio within :data:`RIVAL_NATS`): these poses cannot tell them apart."""
     top = max(evals[c]["merit"] for c in significant)
     margin = max(RIVAL_NATS, CONTENDER_FRACTION * top)
     contenders = sorted(
@@ -1048,13 +1049,13 @@ def _select(
         key=lambda c: -evals[c]["merit"],
     )[:MAX_CONTENDERS]
     fits = [_fit_effect(c, lin, live) for c in contenders]
-    best = max(fits, key=lambda f: (not _implausible(f.parameters), f.heldout.loglik))
+    best = min(fits, key=lambda f: (bool(_implausible(f.parameters)), f.heldout.sum_of_squares))
     ties = [
         f
         for f in fits
         if f is not best
         and not _implausible(f.parameters)
-        and f.heldout.loglik >= best.heldout.loglik - RIVAL_NATS
+        and f.heldout.sum_of_squares <= best.heldout.sum_of_squares + 2.0 * RIVAL_NATS
     ]
     return best, ties
 
@@ -1066,9 +1067,9 @@ def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) 
     - 1 best others are refitted, each growing further forms on the model linearised at its
     refit while they pay (up to :data:`MAX_REFINEMENTS`; a large effect moves the solution
     far from the geometric fit, where the first linearisation was made). Of these refits, the
-    one with the fewest parameters (ties: the tested form's) is kept unless a larger one
-    predicts held-out poses better by more than the parameters of its forms that the kept one
-    lacks cost (:func:`_pays`, :func:`_extra`); a physically
+    one with the fewest parameters (ties: the tested form's) is kept unless another predicts
+    held-out poses better by more than the parameters of its forms that the kept one lacks
+    cost (:func:`_predicts_better`, :func:`_extra`); a physically
     implausible refit only where every one is, after the forms added last are dropped one by
     one (:func:`_plausible_prefix`) and the plainest forms of the effect at the place are
     tried (a richer or more flexible form that comes out impossible, such as
@@ -1083,7 +1084,7 @@ def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) 
     for fit in sorted(fits, key=lambda f: _columns(f.forms, cols).size):
         if _implausible(fit.parameters):
             continue
-        if kept is None or _pays(_fit_score(kept), _fit_score(fit), _extra(fit, kept, cols)):
+        if kept is None or _predicts_better(fit, kept, _extra(fit, kept, cols)):
             kept = fit
     if kept is None:
         geometric = stats.heldout(r, D, fold).loglik
@@ -1119,6 +1120,17 @@ def _plausible_prefix(fit: _Fit, lin: _Linearised) -> _Fit:
 
 def _fit_score(fit: _Fit) -> tuple[float, float]:
     return fit.heldout.loglik, fit.heldout.sum_of_squares
+
+
+def _predicts_better(fit: _Fit, than: _Fit, k: int = 0) -> bool:
+    """Whether refit ``fit`` predicts held-out poses better than ``than`` by more than ``k``
+    parameters cost: its plain held-out sum of squares (whitened; what ``delta_p`` reports) is
+    lower by more than ``2 REFINE_GAIN_PER_PARAM k``. The sum of squares, not the
+    log-likelihood: a refit whose parameters are poorly determined predicts with a wide
+    covariance, which hides its prediction errors from the likelihood."""
+    return fit.heldout.sum_of_squares < than.heldout.sum_of_squares - 2.0 * (
+        REFINE_GAIN_PER_PARAM * k
+    )
 
 
 def _extra(fit: _Fit, than: _Fit, cols: dict) -> int:

@@ -249,8 +249,9 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
             lines.append(
                 "Indistinguishable on these poses: "
                 + " or ".join(t["candidate"] for t in tied)
-                + " (each refitted, their held-out log-likelihoods within "
-                f"{det['indistinguishable']['within_nats']:g} nats; the first is reported): "
+                + " (each refitted, they predict held-out poses equally well: likelihood ratio "
+                f"within {det['indistinguishable']['within_nats']:g} nats; the first is "
+                "reported): "
                 "poses that separate them, or less noise, would tell which."
             )
         rivals = [
