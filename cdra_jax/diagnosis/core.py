@@ -1036,12 +1036,15 @@ class _Linearised:
 def _select(
     significant: Sequence[Candidate], evals: dict, lin: _Linearised, live: Sequence[Candidate]
 ) -> tuple[_Fit, list[_Fit]]:
-    """The refit of the significant candidates whose merit is within :data:`RIVAL_NATS` or
-    :data:`CONTENDER_FRACTION` of the best one's (at most :data:`MAX_CONTENDERS`) that
-    predicts held-out poses best (the smallest held-out sum of squares; a physically
-    implausible refit only where every contender's is), and the other contenders' plausible
-    refits whose held-out sum of squares is within ``2 RIVAL_NATS`` of it (a log-likelihood
-    ratio within :data:`RIVAL_NATS`): these poses cannot tell them apart."""
+    """The refits of the significant candidates whose merit is within :data:`RIVAL_NATS` or
+    :data:`CONTENDER_FRACTION` of the best one's (at most :data:`MAX_CONTENDERS`): the
+    selected one, and the other plausible ones whose held-out sum of squares is within
+    ``2 RIVAL_NATS`` of it (a log-likelihood ratio within :data:`RIVAL_NATS`) or that predict
+    better without paying for their extra parameters: these poses cannot tell them apart.
+
+    The plausible refit of the highest merit is selected unless another predicts held-out
+    poses better by more than its extra parameters cost (:func:`_predicts_better`, one
+    parameter at least); an implausible refit only where every contender's is."""
     top = max(evals[c]["merit"] for c in significant)
     margin = max(RIVAL_NATS, CONTENDER_FRACTION * top)
     contenders = sorted(
@@ -1049,12 +1052,18 @@ def _select(
         key=lambda c: -evals[c]["merit"],
     )[:MAX_CONTENDERS]
     fits = [_fit_effect(c, lin, live) for c in contenders]
-    best = min(fits, key=lambda f: (bool(_implausible(f.parameters)), f.heldout.sum_of_squares))
+    plausible = [f for f in fits if not _implausible(f.parameters)]
+    if not plausible:
+        return fits[0], []
+    best = plausible[0]
+    for f in plausible[1:]:
+        extra = max(1, _size(f, lin.cols) - _size(best, lin.cols))
+        if _predicts_better(f, best, extra):
+            best = f
     ties = [
         f
-        for f in fits
+        for f in plausible
         if f is not best
-        and not _implausible(f.parameters)
         and f.heldout.sum_of_squares <= best.heldout.sum_of_squares + 2.0 * RIVAL_NATS
     ]
     return best, ties
@@ -1081,7 +1090,7 @@ def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) 
     kept: _Fit | None = None
     # the fewest parameters first (ties: the tested form's chain): a larger one replaces it
     # only where it pays for what it adds
-    for fit in sorted(fits, key=lambda f: _columns(f.forms, cols).size):
+    for fit in sorted(fits, key=lambda f: _size(f, cols)):
         if _implausible(fit.parameters):
             continue
         if kept is None or _predicts_better(fit, kept, _extra(fit, kept, cols)):
@@ -1131,6 +1140,11 @@ def _predicts_better(fit: _Fit, than: _Fit, k: int = 0) -> bool:
     return fit.heldout.sum_of_squares < than.heldout.sum_of_squares - 2.0 * (
         REFINE_GAIN_PER_PARAM * k
     )
+
+
+def _size(fit: _Fit, cols: dict) -> int:
+    """The number of effect parameters of a refit."""
+    return int(_columns(fit.forms, cols).size)
 
 
 def _extra(fit: _Fit, than: _Fit, cols: dict) -> int:
