@@ -1,24 +1,33 @@
 """Find the missing physics: detect, locate, attribute and refit (design.md, 'diagnose').
 
 1. **Fit** the 6 (K+1) frame errors (24 for the CDRA) by the weighted Gauss-Newton of the paper
-   (:func:`cdra_jax.calibration.calibrate_paper` with the noise model).
-2. **Detect** whether that fit is consistent with the stated noise: the K-fold held-out
-   chi-square ``Q`` with the predictive covariance ``I + D_f C D_f^T`` and its exact null
-   distribution (:mod:`.stats`); where poses are repeated, a lack-of-fit F test that needs no
-   noise value; and the family of candidate F tests (Holm-corrected). The reported ``p_value``
-   is the Bonferroni combination of the tests used (``min(1, n_tests * min p)``), so that
-   ``mismatch = p_value < alpha`` keeps the false-positive rate at ``alpha`` or below.
+   (:func:`cdra_jax.calibration.calibrate_paper` with the noise model; for points, the
+   ``auto`` solver's least squares).
+2. **Detect** with tests that need no noise value: whether the residual is predictable from the
+   rows' regressors on left-out poses (:func:`stats.structure_test`: module states, time,
+   payload, the tool's place in the workspace), the family of candidate F tests
+   (Holm-corrected) and, where poses are repeated, a lack-of-fit F test; given noise values add
+   the K-fold held-out chi-square ``Q`` (predictive covariance ``I + D_f C D_f^T``, exact null,
+   :mod:`.stats`) tolerating :data:`NOISE_TOLERANCE` times the stated variance. The reported
+   ``p_value`` is the Bonferroni combination of the tests used (``min(1, n_tests * min p)``),
+   so that ``mismatch = p_value < alpha`` keeps the false-positive rate at ``alpha`` or below.
 3. **Attribute**: each candidate of :mod:`cdra_jax.physics` is linearised at the geometric fit
    (``jax.jacfwd`` of the extended model, all candidates in one compiled program); what the
    frame errors absorb is projected out; the absorbed fraction, the F test, the held-out
-   log-likelihood gain and the candidates this pose set cannot tell apart are tabulated. The
-   selected candidate is the one with the largest held-out gain among those significant at
-   ``alpha`` after Holm's correction.
-4. **Refit** the frame errors and the selected candidate's parameters jointly (optimistix
-   Levenberg-Marquardt on the whitened residual), with 95 % intervals from the joint covariance
-   and a plausibility check. If the refit still misfits (held-out p < alpha) and removes less
-   than :data:`EXPLAINED_MIN` of the excess held-out misfit, or no candidate is significant,
-   the effect is ``unattributed`` and located by generic probes (:mod:`cdra_jax.physics.probes`).
+   log-likelihood gain and the candidates this pose set cannot tell apart are tabulated.
+4. **Select and refit**: the significant candidates whose held-out merit comes close to the
+   best one's (:data:`MAX_CONTENDERS`) are each refitted jointly with the frame errors
+   (Levenberg-Marquardt on the whitened residual), in chains of their forms (:func:`_chains`,
+   :func:`_fit_effect`); the held-out sum of squares decides between refits, a refit with more
+   parameters paying for them (:func:`_predicts_better`); refits that predict equally well are
+   reported as indistinguishable. 95 % intervals come from the joint covariance; a physically
+   implausible estimate is never reported.
+5. **Specific, or unattributed**: a generic probe of no more parameters at another place that
+   predicts held-out poses better (:func:`_outdone`), a refit that leaves a misfit it does not
+   explain (:data:`EXPLAINED_MIN`), or no significant candidate: the effect is
+   ``unattributed``, located where its structure lives (:func:`_locate_unattributed`).
+6. **Noise not given**: a diagnosis that names an effect runs again with the noise estimated
+   from that effect's refit (:data:`NOISE_PASSES`).
 """
 
 from __future__ import annotations
@@ -103,6 +112,16 @@ REPEAT_TOL = 1e-6
 NOISE_PASSES = 2
 """Without noise values, a diagnosis that names an effect is run once more with the noise
 re-estimated from that effect's refit (at most this many passes in all)."""
+
+REFIT_RTOL = 1e-8
+"""A candidate's joint refit has converged when a step lowers the whitened cost by less than
+this fraction (about 1e-3 of a parameter's standard deviation on a few hundred entries; a
+tighter tolerance creeps along the ill-conditioned directions of many lumped products)."""
+
+REFIT_STEPS = 15
+"""At most this many accepted Levenberg-Marquardt steps per refit: a well-posed refit
+converges in a few; one that creeps along ill-conditioned combinations (many lumped products
+together) has by then reached the held-out error it will have."""
 
 MAX_CHAINS = 3
 """The chains of forms of a selected effect that are refitted: the tested form's and the best
@@ -1449,7 +1468,7 @@ def _refit(
         y0[free] += y_lin
     else:
         y0 = np.array(y_start, float)
-    y_all, ok, steps = joint_refit(y0, free, problem)
+    y_all, ok, steps = joint_refit(y0, free, problem, max_steps=REFIT_STEPS, rtol=REFIT_RTOL)
     r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, problem.q.dtype), problem)
     r1 = np.asarray(r1, float)[rows.take]
     J1_all = np.asarray(J1_all, float)[rows.take]
