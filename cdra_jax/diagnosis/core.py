@@ -587,7 +587,7 @@ def diagnose(
         # rotation); the diagnosis runs again weighted by that noise
         problem = _with_estimated_noise(problem, floor_phys, verdict.y, verdict.free)
         y_base = joint_refit(y_base, np.arange(n_geo), problem)[0]
-        verdict = _judge(setup, problem, y_base, passes=verdict.passes + 1)
+        verdict = _judge(setup, problem, y_base, passes=verdict.passes + 1, only=verdict.contenders)
     return verdict.diagnosis
 
 
@@ -632,13 +632,15 @@ class _Setup:
 @dataclasses.dataclass(frozen=True)
 class _Verdict:
     """One pass's :class:`Diagnosis`, with ``y`` the written model's parameters, ``free`` the
-    indices of the parameters fitted with the named effect (``None`` when none is named), and
-    the number of ``passes`` so far."""
+    indices of the parameters fitted with the named effect (``None`` when none is named), the
+    number of ``passes`` so far, and the ``(effect, place)`` of the named effect and of those
+    its refit could not be told from (what a further pass refits)."""
 
     diagnosis: Diagnosis
     y: np.ndarray
     free: np.ndarray | None
     passes: int
+    contenders: frozenset[tuple[str, str]] = frozenset()
 
 
 @dataclasses.dataclass
@@ -671,9 +673,17 @@ class _Fit:
         return self.forms[0]
 
 
-def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) -> _Verdict:
+def _judge(
+    s: _Setup,
+    problem: Extended,
+    y_base: np.ndarray,
+    passes: int = 1,
+    only: frozenset[tuple[str, str]] = frozenset(),
+) -> _Verdict:
     """One pass of the diagnosis on ``problem`` (its noise weighting) from the base model's
-    fit ``y_base``: detection, the candidate table, selection and refit, attribution, place."""
+    fit ``y_base``: detection, the candidate table, selection and refit, attribution, place.
+    ``only``: refit no other significant candidates than these ``(effect, place)`` (a
+    further pass re-weights the contenders of the first)."""
     arm, meas, given, alpha, cols = s.arm, s.meas, s.given, s.alpha, s.cols
     m = meas.m
     q = problem.q
@@ -806,7 +816,8 @@ def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) ->
     ]
     lin = _Linearised(problem, layout, arm, r, D, J, fold, given, y_base, cols)
     if mismatch and significant:
-        fit, ties = _select(significant, evals, lin, s.live)
+        narrowed = [c for c in significant if (c.name, c.location) in only]
+        fit, ties = _select(narrowed or significant, evals, lin, s.live)
         best = fit.lead
         refit_info = fit.info
         parameters = fit.parameters
@@ -1031,7 +1042,10 @@ def _judge(s: _Setup, problem: Extended, y_base: np.ndarray, passes: int = 1) ->
         problem, y_model, list(s.own) + model_forms, cols, arm, meas.point_names
     )
     diag.report = render_report(diag, None if fit is None else fit.lead)
-    return _Verdict(diag, y_model, free, passes)
+    named = frozenset(
+        (f.lead.name, f.lead.location) for f in ([fit, *ties] if fit and free is not None else [])
+    )
+    return _Verdict(diag, y_model, free, passes, named)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1104,7 +1118,7 @@ def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) 
     a negative per-cable compliance, stands in for noise or for another shape)."""
     r, D, J, fold, cols = lin.r, lin.D, lin.J, lin.fold, lin.cols
     place = [c for c in live if (c.name, c.location) == (tested.name, tested.location)]
-    chains = _chains(tested, place, cols, r, D, J, fold, lin.arm)[:MAX_CHAINS]
+    chains = _chains(tested, place, cols, r, D, J, fold, lin.arm)
     fits = [_plausible_prefix(_grow(_refit(f, g, lin), place, lin), lin) for f, g in chains]
     kept: _Fit | None = None
     # the fewest parameters first (ties: the tested form's chain): a larger one replaces it
@@ -1133,17 +1147,20 @@ def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) 
     return kept
 
 
-def _plausible_prefix(fit: _Fit, lin: _Linearised) -> _Fit:
-    """``fit``, or where its estimates are physically implausible, the refit of its longest
-    plausible prefix of forms (the forms added last dropped one by one; ``fit`` itself where
-    none is plausible)."""
-    for k in range(len(fit.forms) - 1, 0, -1):
+def _plausible_prefix(history: Sequence[_Fit], lin: _Linearised) -> _Fit:
+    """The last physically plausible refit of ``history`` (a chain's refit, then each with one
+    form added, :func:`_grow`); where none is, the refit of the longest plausible prefix of
+    the first one's forms (the forms added last dropped one by one); the last refit where no
+    prefix is plausible either."""
+    for fit in reversed(history):
         if not _implausible(fit.parameters):
-            break
-        trial = _refit(fit.forms[:k], fit.gains[:k], lin)
+            return fit
+    first = history[0]
+    for k in range(len(first.forms) - 1, 0, -1):
+        trial = _refit(first.forms[:k], first.gains[:k], lin)
         if not _implausible(trial.parameters):
             return trial
-    return fit
+    return history[-1]
 
 
 def _fit_score(fit: _Fit) -> tuple[float, float]:
@@ -1173,11 +1190,12 @@ def _extra(fit: _Fit, than: _Fit, cols: dict) -> int:
     return max(1, int(_columns(new, cols).size)) if new else 1
 
 
-def _grow(fit: _Fit, place: Sequence[Candidate], lin: _Linearised) -> _Fit:
-    """``fit`` with further forms of ``place`` that join it added one at a time, judged on the
-    model linearised at the refit, while they pay (:func:`_best_addition`), up to
-    :data:`MAX_REFINEMENTS` added forms."""
+def _grow(fit: _Fit, place: Sequence[Candidate], lin: _Linearised) -> list[_Fit]:
+    """``fit``, then its refits with further forms of ``place`` that join it added one at a
+    time, judged on the model linearised at the last refit, while they pay
+    (:func:`_best_addition`), up to :data:`MAX_REFINEMENTS` added forms."""
     n_geo = lin.D.shape[1]
+    history = [fit]
     while len(fit.forms) <= MAX_REFINEMENTS:
         free = np.concatenate([np.arange(n_geo), n_geo + _columns(fit.forms, lin.cols)])
         blocks = {
@@ -1190,7 +1208,8 @@ def _grow(fit: _Fit, place: Sequence[Candidate], lin: _Linearised) -> _Fit:
         fit = _refit(
             [*fit.forms, found[0]], [*fit.gains, float(found[1][0] - base[0])], lin, y_start=fit.y
         )
-    return fit
+        history.append(fit)
+    return history
 
 
 def _refit_model(
@@ -1397,7 +1416,9 @@ def _chains(best, place, cols, r, D, J, fold, arm):
     """Chains of forms of ``best``'s effect at its location to start refits with, chosen on
     the model linearised at the geometric fit: ``[(forms, gains)]``, the chain from the
     tested form ``best`` first, then those from the other forms at the place (``place``:
-    its variants and refinements), the best held-out prediction first.
+    its variants and refinements), the best held-out prediction first, as long as it comes
+    within :data:`RIVAL_NATS` or :data:`CONTENDER_FRACTION` of the best chain's held-out
+    gain (at most :data:`MAX_CHAINS` in all).
 
     From each start (a tested form, or a refinement that is a complete form by itself,
     :attr:`~cdra_jax.physics.Effect.alone`), forward selection adds the forms that join it
@@ -1439,12 +1460,20 @@ def _chains(best, place, cols, r, D, J, fold, arm):
         return forms, gains, base[0]
 
     starts = [c for c in place if c is not best and (not c.effect.refinement or c.effect.alone)]
+    first = chain(best)
     others = sorted((chain(c) for c in starts), key=lambda t: -t[2])
+    top = max([first[2]] + [t[2] for t in others])
+    margin = max(RIVAL_NATS, CONTENDER_FRACTION * (top - geometric))
     out, seen = [], set()
-    for forms, gains, _ in [chain(best), *others]:
-        if frozenset(forms) not in seen:  # the same forms reached from another start
-            seen.add(frozenset(forms))
-            out.append((forms, gains))
+    for forms, gains, score in [first, *others]:
+        if len(out) == MAX_CHAINS:
+            break
+        if frozenset(forms) in seen:  # the same forms reached from another start
+            continue
+        if out and score < top - margin:  # not close enough to be worth a refit
+            continue
+        seen.add(frozenset(forms))
+        out.append((forms, gains))
     return out
 
 
@@ -1468,10 +1497,11 @@ def _refit(
         y0[free] += y_lin
     else:
         y0 = np.array(y_start, float)
-    y_all, ok, steps = joint_refit(y0, free, problem, max_steps=REFIT_STEPS, rtol=REFIT_RTOL)
-    r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, problem.q.dtype), problem)
-    r1 = np.asarray(r1, float)[rows.take]
-    J1_all = np.asarray(J1_all, float)[rows.take]
+    y_all, ok, steps, (r1, J1_all) = joint_refit(
+        y0, free, problem, max_steps=REFIT_STEPS, rtol=REFIT_RTOL
+    )
+    r1 = r1[rows.take]
+    J1_all = J1_all[rows.take]
     J1 = J1_all[:, free]
     U1 = stats.orthonormal_basis(J1)
     dof = r1.size - U1.shape[1]
