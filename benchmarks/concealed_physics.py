@@ -28,7 +28,10 @@ Targets (pass/fail, on the target cell: m = 30 poses, sizes >= 3 x noise): >= 95
 and location; <= 5 % false positives on clean data (``mismatch`` true or effect not ``none``);
 >= 80 % of out-of-library recordings reported ``unattributed`` (and located where they live,
 when they live at one place); >= 90 % of the modelled
-recordings with a held-out ``delta_p`` within 20 % of the noise-only floor.
+recordings with a held-out ``delta_p`` within 20 % of the noise-only floor. With
+``--stability``, the target cell's recordings and their clean twins are also diagnosed without
+noise values and with the true noise scaled by 0.7, 1 and 1.3: every verdict (effect and place)
+must be the same in all four runs.
 
 Usage (from the repository root)::
 
@@ -80,6 +83,7 @@ TARGETS = {
     "false_positive_rate": 0.05,
     "unattributed_rate": 0.80,
     "heldout_within_20pct": 0.90,
+    "verdict_stable": 1.0,
 }
 HELDOUT_TOLERANCE = 1.20
 
@@ -108,6 +112,29 @@ def load_analyser(noise_given: bool = True) -> Diagnose:
         return diagnose_files(model, data, sp, sr, seed=0).to_dict()
 
     return diagnose
+
+
+NOISE_SCALES = (0.7, 1.0, 1.3)
+"""With ``--stability``: the stated noise is the true one times each of these, and not given
+at all; the verdict (effect and place) must be the same in all four runs."""
+
+
+def load_stability() -> Callable[[str, str, float, float], dict[str, Any]]:
+    """``stability(model, data, sp, sr)``: the analyser's verdict (``effect@place``) without
+    noise values and with the true noise ``(sp, sr)`` scaled by each of :data:`NOISE_SCALES`,
+    and whether they all agree."""
+    from cdra_jax.diagnosis import diagnose_files
+
+    def stability(model: str, data: str, sp: float, sr: float) -> dict[str, Any]:
+        runs = {"not given": (None, None)}
+        runs.update({f"x{k:g}": (k * sp, k * sr) for k in NOISE_SCALES})
+        verdicts = {}
+        for name, (a, b) in runs.items():
+            d = diagnose_files(model, data, a, b, seed=0)
+            verdicts[name] = f"{d.effect}@{d.located_in}"
+        return {"verdicts": verdicts, "stable": len(set(verdicts.values())) == 1}
+
+    return stability
 
 
 # ----------------------------------------------------------------------------------------------
@@ -224,8 +251,15 @@ def _rerun_command(folder: Path, case: Case) -> str:
     )
 
 
-def run_case(case: Case, rec: gen.Recording, out: Path, diagnose: Diagnose) -> dict[str, Any]:
-    """Write the recording, hand its files to the analyser, and score the verdict."""
+def run_case(
+    case: Case,
+    rec: gen.Recording,
+    out: Path,
+    diagnose: Diagnose,
+    stability: Callable[[str, str, float, float], dict[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """Write the recording, hand its files to the analyser, and score the verdict (and, with
+    ``stability``, whether the verdict depends on the noise values, :func:`load_stability`)."""
     folder = out / recording_id(case.tag)
     model, data = gen.write_recording(rec, folder)
     truth = {"tag": case.tag, "kind": case.kind, **rec.truth()}
@@ -239,6 +273,12 @@ def run_case(case: Case, rec: gen.Recording, out: Path, diagnose: Diagnose) -> d
     except Exception as e:  # noqa: BLE001 -- a crash is a scored failure, not the end of the run
         diag, error = {}, f"{type(e).__name__}: {e}"
     seconds = time.perf_counter() - t0
+    stable = None
+    if stability is not None:
+        try:
+            stable = stability(str(model), str(data), case.noise_pos_mm, case.noise_rot_rad)
+        except Exception as e:  # noqa: BLE001 -- a crash is a scored failure
+            stable = {"verdicts": {"error": f"{type(e).__name__}: {e}"}, "stable": False}
     (folder / "diagnosis.json").write_text(
         json.dumps({"diagnosis": diag, "error": error}, indent=1, default=_jsonable) + "\n"
     )
@@ -281,6 +321,7 @@ def run_case(case: Case, rec: gen.Recording, out: Path, diagnose: Diagnose) -> d
         "error": error,
         "twin_of": case.twin_of,
         "seconds": seconds,
+        "stability": stable,
     }
 
 
@@ -350,6 +391,8 @@ def score(rows: Sequence[Mapping[str, Any]], cfg: Config) -> dict[str, Any]:
     t_eff = _rate([r for r in eff if target(r)], lambda r: r["correct"])
     t_fp = _rate(clean, lambda r: not r["correct"])
     t_ool = _rate([r for r in ool if target(r)], lambda r: r["correct"])
+    checked = [r for r in rows if r.get("stability")]
+    t_stable = _rate(checked, lambda r: r["stability"]["stable"])
     t_ho = _rate(
         ratios,
         lambda x: x["after_over_floor"] is not None and x["after_over_floor"] <= HELDOUT_TOLERANCE,
@@ -397,6 +440,8 @@ def score(rows: Sequence[Mapping[str, Any]], cfg: Config) -> dict[str, Any]:
                 "n_clean": len(g_cln),
             }
         detection[f"noise={sp:g}mm/{sr:g}rad m={m}"] = row
+    if checked:
+        targets["verdict_stable"] = verdict(t_stable, TARGETS["verdict_stable"])
     return {
         "targets": targets,
         "all_pass": all(t["pass"] for t in targets.values() if t["pass"] is not None)
@@ -445,6 +490,7 @@ def run(
     else:
         arm = gen.load_arm_data(cfg.model)
     diagnose = diagnose or load_analyser()
+    stability = load_stability() if cfg.extra.get("stability") else None
     out = Path(cfg.out) if cfg.out else Path(tempfile.mkdtemp(prefix="concealed_"))
     out.mkdir(parents=True, exist_ok=True)
     log(f"recordings in {out}")
@@ -459,7 +505,7 @@ def run(
             rows.append({**_skipped(case), "error": str(e)})
             log(f"[{n + 1}/{len(cases)}] {case.tag}: skipped ({e})")
             continue
-        row = run_case(case, rec, out, diagnose)
+        row = run_case(case, rec, out, diagnose, stability if in_target(case, cfg) else None)
         rows.append(row)
         _log_row(log, n + 1, len(cases), row)
         if (n + 1) % 10 == 0 or n + 1 == len(cases):
@@ -480,7 +526,7 @@ def run(
                 twin_of=case.tag,
             )
             twin_rec = gen.clean_twin(rec)
-            trow = run_case(twin, twin_rec, out, diagnose)
+            trow = run_case(twin, twin_rec, out, diagnose, stability)
             trow["own_floor_dp"] = gen.geometric_heldout_dp(twin_rec.scenario, twin_rec.measured)
             rows.append(trow)
             _log_row(log, n + 1, len(cases), trow)
@@ -626,6 +672,12 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[Config, bool]:
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
     p.add_argument("--quick", action="store_true", help="a small run (a few minutes)")
     p.add_argument(
+        "--stability",
+        action="store_true",
+        help="also run the analyser on the target cell's recordings without noise values and "
+        "with the true noise scaled by 0.7, 1 and 1.3: the verdict must not change",
+    )
+    p.add_argument(
         "--noise-not-given",
         action="store_true",
         help="run the analyser without noise values (it estimates them), as a user who does "
@@ -659,6 +711,7 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[Config, bool]:
         p.error("noise levels, sizes and --trials must be positive")
     cfg.noise = tuple(zip(sp, sr, strict=True))
     cfg.extra["noise_given"] = not a.noise_not_given
+    cfg.extra["stability"] = bool(a.stability)
     return cfg, a.json
 
 

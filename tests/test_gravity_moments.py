@@ -357,3 +357,43 @@ def test_what_cannot_apply_to_the_arm_is_named_once():
         "link_bending@f1 (link 'f1' has zero length)",
         "link_bending@f2 (link 'f2' has zero length)",
     ]
+
+
+@pytest.mark.slow
+def test_random_arms_with_random_effects_never_crash_the_diagnosis():
+    """A random chain of a revolute, a spherical, a prismatic and a revolute joint, no masses,
+    no cables, 12 poses, the noise not given; two random effects of the vocabulary (a random
+    evaluable place and form), each at a plausible size and at a size outside its physical
+    range (a negative compliance where one is impossible), and clean data: every diagnosis
+    ends with a verdict of the contract (no exception), a place of the model or none, and a
+    named effect only with plausible estimates."""
+    from cdra_jax import NoiseModel
+    from cdra_jax.diagnosis import diagnose
+    from cdra_jax.physics import VOCABULARY
+    from cdra_jax.physics.synthetic import recording_aux, simulate_recordings
+
+    arm = _random_arm(0, "rspr")
+    rng = np.random.default_rng(0)
+    key = jax.random.PRNGKey(0)
+    tried = [
+        c
+        for c, why in candidates(arm, recording_aux(key, arm, 12), VOCABULARY)
+        if why is None and not c.effect.refinement
+    ]
+    names = sorted({c.name for c in tried})
+    places = set(arm.module_names) | set(arm.frame_names)
+    cases: list = [(None, None)]
+    for name in rng.choice(names, 2, replace=False):
+        of_name = [c for c in tried if c.name == name]
+        c = of_name[rng.integers(len(of_name))]
+        size = [s.low + 0.3 * (min(s.high, 1e3) - s.low) for s in c.parameters(arm)]
+        cases += [(c, size), (c, [-abs(v) - 1e-3 for v in size])]
+    for c, params in cases:
+        meas, _ = simulate_recordings(
+            key, arm, 12, candidate=c, params=params, noise=NoiseModel(0.05, 5e-4)
+        )
+        d = diagnose(arm, meas, None)
+        assert d.effect in (*{e.name for e in VOCABULARY}, "none", "unattributed"), d.report
+        assert d.located_in is None or d.located_in in places, d.located_in
+        assert all(v.plausible for v in d.parameters.values()), (c, params, d.report)
+        assert d.to_dict()["effect"] == d.effect

@@ -1,25 +1,33 @@
 """Find the missing physics: detect, locate, attribute and refit (design.md, 'diagnose').
 
 1. **Fit** the 6 (K+1) frame errors (24 for the CDRA) by the weighted Gauss-Newton of the paper
-   (:func:`cdra_jax.calibration.calibrate_paper` with the noise model).
-2. **Detect** whether that fit is consistent with the stated noise: the K-fold held-out
-   chi-square ``Q`` with the predictive covariance ``I + D_f C D_f^T`` and its exact null
-   distribution (:mod:`.stats`); where poses are repeated, a lack-of-fit F test that needs no
-   noise value; and the family of candidate F tests (Holm-corrected). The reported ``p_value``
-   is the Bonferroni combination of the tests used (``min(1, n_tests * min p)``), so that
-   ``mismatch = p_value < alpha`` keeps the false-positive rate at ``alpha`` or below.
+   (:func:`cdra_jax.calibration.calibrate_paper` with the noise model; for points, the
+   ``auto`` solver's least squares).
+2. **Detect** with tests that need no noise value: whether the residual is predictable from the
+   rows' regressors on left-out poses (:func:`stats.structure_test`: module states, time,
+   payload, the tool's place in the workspace), the family of candidate F tests
+   (Holm-corrected) and, where poses are repeated, a lack-of-fit F test; given noise values add
+   the K-fold held-out chi-square ``Q`` (predictive covariance ``I + D_f C D_f^T``, exact null,
+   :mod:`.stats`) tolerating :data:`NOISE_TOLERANCE` times the stated variance. The reported
+   ``p_value`` is the Bonferroni combination of the tests used (``min(1, n_tests * min p)``),
+   so that ``mismatch = p_value < alpha`` keeps the false-positive rate at ``alpha`` or below.
 3. **Attribute**: each candidate of :mod:`cdra_jax.physics` is linearised at the geometric fit
    (``jax.jacfwd`` of the extended model, all candidates in one compiled program); what the
    frame errors absorb is projected out; the absorbed fraction, the F test, the held-out
-   log-likelihood gain and the candidates this pose set cannot tell apart are tabulated. The
-   selected candidate is the one with the largest held-out gain among those significant at
-   ``alpha`` after Holm's correction.
-4. **Refit** the frame errors and the selected candidate's parameters jointly
-   (Levenberg-Marquardt on the whitened residual, :mod:`cdra_jax.calibration.damped`), with
-   95 % intervals from the joint covariance
-   and a plausibility check. If the refit still misfits (held-out p < alpha) and removes less
-   than :data:`EXPLAINED_MIN` of the excess held-out misfit, or no candidate is significant,
-   the effect is ``unattributed`` and located by generic probes (:mod:`cdra_jax.physics.probes`).
+   log-likelihood gain and the candidates this pose set cannot tell apart are tabulated.
+4. **Select and refit**: the significant candidates whose held-out merit comes close to the
+   best one's (:data:`MAX_CONTENDERS`) are each refitted jointly with the frame errors
+   (Levenberg-Marquardt on the whitened residual, :mod:`cdra_jax.calibration.damped`), in chains of their forms (:func:`_chains`,
+   :func:`_fit_effect`); the held-out sum of squares decides between refits, a refit with more
+   parameters paying for them (:func:`_predicts_better`); refits that predict equally well are
+   reported as indistinguishable. 95 % intervals come from the joint covariance; a physically
+   implausible estimate is never reported.
+5. **Specific, or unattributed**: a generic probe of no more parameters at another place that
+   predicts held-out poses better (:func:`_outdone`), a refit that leaves a misfit it does not
+   explain (:data:`EXPLAINED_MIN`), or no significant candidate: the effect is
+   ``unattributed``, located where its structure lives (:func:`_locate_unattributed`).
+6. **Noise not given**: a diagnosis that names an effect runs again with the noise estimated
+   from that effect's refit (:data:`NOISE_PASSES`).
 """
 
 from __future__ import annotations
@@ -81,7 +89,7 @@ REFINE_GAIN_PER_PARAM = 2.0
 """A further form of the selected effect at the selected place (another variant, or a
 refinement such as a load-hardening term) joins the refit only when it raises the held-out
 log-likelihood by more than this many nats per added parameter (about the 2.5 % tail of the
-chance gain; see :func:`_refinements`)."""
+chance gain; see :func:`_chains`)."""
 
 MAX_REFINEMENTS = 3
 """At most this many further forms join the selected one."""
@@ -100,6 +108,33 @@ the selected one's (a likelihood ratio under about 20) is named as nearly as wel
 these poses do not clearly prefer the selection over it."""
 REPEAT_TOL = 1e-6
 """Module states that agree within this (rad or mm, per entry) count as a repeated pose."""
+
+NOISE_PASSES = 2
+"""Without noise values, a diagnosis that names an effect is run once more with the noise
+re-estimated from that effect's refit (at most this many passes in all)."""
+
+REFIT_RTOL = 1e-8
+"""A candidate's joint refit has converged when a step lowers the whitened cost by less than
+this fraction (about 1e-3 of a parameter's standard deviation on a few hundred entries; a
+tighter tolerance creeps along the ill-conditioned directions of many lumped products)."""
+
+REFIT_STEPS = 15
+"""At most this many accepted Levenberg-Marquardt steps per refit: a well-posed refit
+converges in a few; one that creeps along ill-conditioned combinations (many lumped products
+together) has by then reached the held-out error it will have."""
+
+MAX_CHAINS = 3
+"""The chains of forms of a selected effect that are refitted: the tested form's and the best
+others' (:func:`_fit_effect`)."""
+
+MAX_CONTENDERS = 3
+"""The significant candidates whose linearised held-out merit comes within :data:`RIVAL_NATS`
+or :data:`CONTENDER_FRACTION` of the best one's are refitted (at most this many); the refit
+that predicts held-out poses best is selected (a linearisation at the geometric fit
+misjudges a large effect by a share of its size)."""
+
+CONTENDER_FRACTION = 0.1
+
 
 ABSORBED_EXACTLY = (
     "a uniform length scale of the arm (every fixed translation scaled alike): the frame "
@@ -191,28 +226,55 @@ def _estimate_noise(arm: Arm, q, T, floor: tuple[float, float]) -> NoiseModel:
 
 
 def _point_noise(
-    problem: Extended, floor: tuple[float, float], y: np.ndarray | None = None
+    problem: Extended,
+    floor: tuple[float, float],
+    y: np.ndarray | None = None,
+    free: np.ndarray | None = None,
 ) -> tuple[float, float, np.ndarray]:
     """``(position mm, rotation rad, points (P,) mm)`` estimated by variance components on the
-    base model's residual at ``y`` (default: zero) in physical units (every standard deviation
-    1): one group for the full poses' positions, one for their rotations, one per point (NaN
-    for a group without measurements)."""
+    model's residual at ``y`` (default: zero) in physical units (every standard deviation 1),
+    with the degrees of freedom of the parameters ``free`` (indices into ``y``; default: the
+    base model's, frames, markers and the model's own effects): one group for the full poses'
+    positions, one for their rotations, one per point (NaN for a group without measurements)."""
     dtype = problem.q.dtype
     P = problem.obs.n_points
     one = _sigmas(problem.obs, 1.0, 1.0, 1.0, dtype)
     unit = eqx.tree_at(lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt), problem, one)
     if y is None:
         y = np.zeros(unit.n_frames_markers + unit.features.n_params)
+    if free is None:
+        free = np.arange(unit.n_geometric)
     e, D = residual_and_jacobian(jnp.asarray(y, dtype), unit)
     rows = _rows(unit)
     e = np.asarray(e, float)[rows.take]
-    D = np.asarray(D, float)[rows.take, : unit.n_geometric]
+    D = np.asarray(D, float)[np.ix_(rows.take, free)]
     groups = np.where(rows.kind == _POINT, 2 + rows.point, rows.kind)
     floors = np.array([floor[0], floor[1]] + [floor[0]] * P)
     s = stats.variance_components(e, D, groups, floors)
     present = np.array([np.any(groups == g) for g in range(2 + P)])
     s = np.where(present, s, np.nan)
     return float(s[0]), float(s[1]), s[2:]
+
+
+def _with_estimated_noise(
+    problem: Extended,
+    floor: tuple[float, float],
+    y: np.ndarray | None = None,
+    free: np.ndarray | None = None,
+) -> Extended:
+    """``problem`` weighted by the noise :func:`_point_noise` estimates (1 for a kind that is
+    not measured)."""
+    sp, sr, spt = _point_noise(problem, floor, y, free)
+    est = (
+        sp if math.isfinite(sp) else 1.0,
+        sr if math.isfinite(sr) else 1.0,
+        np.where(np.isfinite(spt), spt, 1.0),
+    )
+    return eqx.tree_at(
+        lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt),
+        problem,
+        _sigmas(problem.obs, *est, problem.q.dtype),
+    )
 
 
 def _gravity_in_fit_frame(fit_arm: Arm, nominal: Arm) -> Arm:
@@ -414,15 +476,7 @@ def _geometric_start(arm: Arm, meas: Measurements, q, aux, noise: NoiseModel | N
         calibrated=auto.calibrated_points,
     )
     if noise is None:
-        sp, sr, spt = _point_noise(problem, floor)
-        est = (
-            sp if math.isfinite(sp) else 1.0,
-            sr if math.isfinite(sr) else 1.0,
-            np.where(np.isfinite(spt), spt, 1.0),
-        )
-        problem = eqx.tree_at(
-            lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt), problem, _sigmas(obs, *est, dtype)
-        )
+        problem = _with_estimated_noise(problem, floor)
     fit = {
         "solver": "auto solver, least squares",
         "converged": bool(auto.converged),
@@ -453,7 +507,10 @@ def diagnose(
             position and rotation noise are estimated separately from the geometric fit's
             residual (variance components, with the degrees of freedom the fit uses; see
             :func:`stats.variance_components`), and only the tests that need no noise value
-            (lack of fit on repeated poses, candidate F tests) detect a mismatch.
+            (residual structure, lack of fit on repeated poses, candidate F tests) detect a
+            mismatch. When an effect is named, its refit's residual gives the noise of the
+            data (the geometric fit's residual holds the effect too), and the diagnosis is run
+            again with that noise (:data:`NOISE_PASSES`).
         seed: seed of the cross-validation folds.
         folds: number of cross-validation folds (poses are dealt at random).
         alpha: significance level of the detection and of the (Holm-corrected) candidate tests.
@@ -465,7 +522,6 @@ def diagnose(
     _check(arm, measurements, folds, alpha)
     meas = measurements
     q, aux = _as_arrays(arm, meas)
-    m = meas.m
     given = noise is not None
     # below this a residual is rounding (exact data), not measurement noise
     floor_phys = stats.rounding_floor(_measured_positions(meas))
@@ -476,13 +532,11 @@ def diagnose(
 
     # 1. geometric fit (frames and markers; the model's effects joined below)
     base, fit_info = _geometric_start(arm.with_effects(()), meas, q, aux, noise, floor_phys)
-    fit_arm = base.arm
 
     # 2. features of the model's effects, then of every evaluable candidate and probe, one
     # Jacobian for all
     table = _not_in_model(candidates(arm, aux.keys(), effects), own)
     live = [c for c, why in table if why is None]
-    tested = [c for c in live if not c.effect.refinement]
     table = [(c, why) for c, why in table if not c.effect.refinement]
     probes = [c for c, why in candidates(arm, aux.keys(), PROBES) if why is None]
     everything = tuple(live + probes)
@@ -490,14 +544,13 @@ def diagnose(
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     cols = {c: slice(int(offsets[i]), int(offsets[i + 1])) for i, c in enumerate(everything)}
     F_all, finite = _finite_columns(
-        all_features(own + everything, _gravity_in_fit_frame(fit_arm, arm), q, aux)
+        all_features(own + everything, _gravity_in_fit_frame(base.arm, arm), q, aux)
     )
     if not np.all(finite[: theta_own.size]):
         raise ValueError(
             f"{meas.source}: the model's [[effects]] are not finite on these data (check the "
             "auxiliary columns and the model's masses)"
         )
-    finite = finite[theta_own.size :]
     problem = dataclasses.replace(base, features=F_all, n_model_effects=int(theta_own.size))
     n_geo = problem.n_geometric
     y_base = np.zeros(problem.n_frames_markers + F_all.n_params)
@@ -505,18 +558,136 @@ def diagnose(
         y_base[problem.n_frames_markers : n_geo] = theta_own
         y_base = joint_refit(y_base, np.arange(n_geo), problem)[0]
         fit_info["model_effects"] = [c.label for c in own]
-        if noise is None:  # the noise of the data, not of the effects the geometric fit missed
-            sp, sr, spt = _point_noise(problem, floor_phys, y_base)
-            est = (
-                sp if math.isfinite(sp) else 1.0,
-                sr if math.isfinite(sr) else 1.0,
-                np.where(np.isfinite(spt), spt, 1.0),
-            )
-            problem = eqx.tree_at(
-                lambda p: (p.sigma_pos, p.sigma_rot, p.sigma_pt),
-                problem,
-                _sigmas(problem.obs, *est, q.dtype),
-            )
+        if not given:  # the noise of the data, not of the effects the geometric fit missed
+            problem = _with_estimated_noise(problem, floor_phys, y_base)
+    setup = _Setup(
+        arm=arm,
+        meas=meas,
+        given=given,
+        alpha=alpha,
+        fold=stats.fold_of_poses(meas.m, folds, seed),
+        seed=seed,
+        floor_phys=floor_phys,
+        own=tuple(own),
+        table=table,
+        live=live,
+        probes=probes,
+        cols=cols,
+        finite=finite[theta_own.size :],
+        fit_info=fit_info,
+        regressors=_regressors(arm, meas),
+        repeats=stats.repeat_groups(np.asarray(meas.q), REPEAT_TOL),
+    )
+    verdict = _judge(setup, problem, y_base)
+    for _ in range(NOISE_PASSES - 1):
+        if given or verdict.free is None:
+            break
+        # an effect is named: the noise of the data is what its refit leaves, not what the
+        # geometric fit left (that holds the effect too, and its share of position and
+        # rotation); the diagnosis runs again weighted by that noise
+        problem = _with_estimated_noise(problem, floor_phys, verdict.y, verdict.free)
+        y_base = joint_refit(y_base, np.arange(n_geo), problem)[0]
+        verdict = _judge(setup, problem, y_base, passes=verdict.passes + 1, only=verdict.contenders)
+    return verdict.diagnosis
+
+
+@dataclasses.dataclass(frozen=True)
+class _Setup:
+    """What every pass of one diagnosis shares (:func:`diagnose`).
+
+    Attributes:
+        arm: the nominal model; meas: the measurements; given: whether noise values were given.
+        alpha: the significance level; fold: ``(m,)`` cross-validation fold of each row; seed:
+            the folds' seed.
+        floor_phys: the rounding floor (position mm, rotation rad).
+        own: the model's own effects (part of the base model).
+        table: every tested (effect, location, variant) with why it is skipped (``None``:
+            evaluated); refinements are not in it.
+        live: every evaluable form (refinements included); probes: the generic probes.
+        cols: each form's and probe's columns among the feature columns.
+        finite: ``(p,)`` whether each feature column is finite.
+        fit_info: the geometric fit's summary.
+        regressors: ``(X, groups, names)`` of the structure test (:func:`_regressors`).
+        repeats: groups of repeated poses (lack-of-fit test).
+    """
+
+    arm: Arm
+    meas: Measurements
+    given: bool
+    alpha: float
+    fold: np.ndarray
+    seed: int
+    floor_phys: tuple[float, float]
+    own: tuple[Candidate, ...]
+    table: list[tuple[Candidate, str | None]]
+    live: list[Candidate]
+    probes: list[Candidate]
+    cols: dict[Candidate, slice]
+    finite: np.ndarray
+    fit_info: dict
+    regressors: tuple[np.ndarray, np.ndarray, list[str]]
+    repeats: list[np.ndarray]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Verdict:
+    """One pass's :class:`Diagnosis`, with ``y`` the written model's parameters, ``free`` the
+    indices of the parameters fitted with the named effect (``None`` when none is named), the
+    number of ``passes`` so far, and the ``(effect, place)`` of the named effect and of those
+    its refit could not be told from (what a further pass refits)."""
+
+    diagnosis: Diagnosis
+    y: np.ndarray
+    free: np.ndarray | None
+    passes: int
+    contenders: frozenset[tuple[str, str]] = frozenset()
+
+
+@dataclasses.dataclass
+class _Fit:
+    """A candidate's joint refit with the frames (:func:`_fit_effect`).
+
+    Attributes:
+        forms: the refitted forms (the leading one first, then the forms added to it).
+        gains: the held-out log-likelihood gain each form added.
+        info: the refit's summary (``details.refit``).
+        parameters: the estimates (added forms' named ``<variant>:<name>``).
+        heldout: the refit's cross-validated prediction; p_after: its tolerant p-value (given
+            noise only).
+        y: all entries of ``y`` at the refit; r: its whitened residual; J: the Jacobian of
+            every column there.
+    """
+
+    forms: list[Candidate]
+    gains: list[float]
+    info: dict
+    parameters: dict[str, ParameterEstimate]
+    heldout: stats.HeldOut
+    p_after: float | None
+    y: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+
+    @property
+    def lead(self) -> Candidate:
+        return self.forms[0]
+
+
+def _judge(
+    s: _Setup,
+    problem: Extended,
+    y_base: np.ndarray,
+    passes: int = 1,
+    only: frozenset[tuple[str, str]] = frozenset(),
+) -> _Verdict:
+    """One pass of the diagnosis on ``problem`` (its noise weighting) from the base model's
+    fit ``y_base``: detection, the candidate table, selection and refit, attribution, place.
+    ``only``: refit no other significant candidates than these ``(effect, place)`` (a
+    further pass re-weights the contenders of the first)."""
+    arm, meas, given, alpha, cols = s.arm, s.meas, s.given, s.alpha, s.cols
+    m = meas.m
+    q = problem.q
+    n_geo = problem.n_geometric
     layout = _rows(problem)
     r_j, J_j = residual_and_jacobian(jnp.asarray(y_base, q.dtype), problem)
     r = np.asarray(r_j, float)[layout.take]
@@ -527,9 +698,9 @@ def diagnose(
     rank = UD.shape[1]
     df_resid = N - rank
     # mean square of the rounding floor per whitened entry
-    floor_of_kind = np.where(layout.kind == _ROTATION, floor_phys[1], floor_phys[0])
+    floor_of_kind = np.where(layout.kind == _ROTATION, s.floor_phys[1], s.floor_phys[0])
     floor2 = float(np.mean((floor_of_kind / layout.scale) ** 2))
-    fold = stats.fold_of_poses(m, folds, seed)[layout.row]
+    fold = s.fold[layout.row]
 
     # 3. detection
     ho0 = stats.heldout(r, D, fold, with_null=given)
@@ -537,9 +708,8 @@ def diagnose(
     p_tolerant = ho0.p_value(NOISE_TOLERANCE) if given else None
     chi2_in = float(r @ r)
     p_in = float(scipy.stats.chi2.sf(chi2_in, df_resid)) if given else None
-    groups = stats.repeat_groups(np.asarray(meas.q), REPEAT_TOL)
-    lof = stats.lack_of_fit(r, groups, df_resid, floor2, row=layout.row, entry=layout.entry)
-    X_reg, reg_groups, group_names = _regressors(arm, meas)
+    lof = stats.lack_of_fit(r, s.repeats, df_resid, floor2, row=layout.row, entry=layout.entry)
+    X_reg, reg_groups, group_names = s.regressors
 
     def structure(res, basis):
         """The structure test on a residual; not applicable (p = 1) to a residual at the
@@ -553,8 +723,10 @@ def diagnose(
     # 4. candidate table: one row per (effect, location); its variants are alternatives
     evals: dict[Candidate, dict] = {}
     failed: dict[Candidate, str] = {}
-    for c in tested:
-        if not np.all(finite[cols[c]]):
+    for c, why in s.table:
+        if why is not None:
+            continue
+        if not np.all(s.finite[cols[c]]):
             failed[c] = "failed: its features are not finite on these data"
             continue
         try:
@@ -563,7 +735,7 @@ def diagnose(
             # a numerical failure of one candidate (non-finite features, a singular or
             # indefinite matrix): that candidate is marked failed, the diagnosis goes on
             failed[c] = f"failed: {err}"
-    table = [(c, failed.get(c, why)) for c, why in table]
+    table = [(c, failed.get(c, why)) for c, why in s.table]
     by_place: dict[tuple[str, str], list[tuple[Candidate, str | None]]] = {}
     for c, why in table:
         by_place.setdefault((c.name, c.location), []).append((c, why))
@@ -617,7 +789,7 @@ def diagnose(
     # The verdict rests on tests that need no noise value (their statistics do not change when
     # every noise value is scaled): the candidates' F tests, the residual's structure, the
     # lack of fit between repeats. A chi-square against given noise values checks those values.
-    probe_rows, probe_place = _locate(probes, cols, r, J, UD, df_resid, alpha, floor2)
+    probe_rows, probe_place = _locate(s.probes, cols, r, J, UD, df_resid, alpha, floor2)
     tests_used = {"candidates": p_family, "structure": struct0.p_value}
     if p_tolerant is not None:
         tests_used["heldout_chi2_tolerant"] = p_tolerant
@@ -633,54 +805,24 @@ def diagnose(
     before = _errors(ho0, layout, p_heldout)
     after = before
     refit_info: dict = {}
-    best: Candidate | None = None
-    ho1: stats.HeldOut | None = None
+    fit: _Fit | None = None
+    ties: list[_Fit] = []  # other effects whose refits predict held-out poses as well
     y_model = y_base  # the written model: the base model's fit ...
-    model_forms: list[Candidate] = []  # ... plus the selected effect's forms
+    free: np.ndarray | None = None  # ... and the parameters fitted with the named effect
+    rival: dict | None = None
+    explained = 0.0
     significant = [
         chosen[k] for k in keys if adj[k] < alpha and (evals[chosen[k]]["merit"] or -1.0) > 0
     ]
+    lin = _Linearised(problem, layout, arm, r, D, J, fold, given, y_base, cols)
     if mismatch and significant:
-        best = max(significant, key=lambda c: evals[c]["merit"])
-        same = [c for c in live if (c.name, c.location) == (best.name, best.location)]
-        forms, gains = _refinements(best, same, cols, r, D, J, fold)
-        best = forms[0]
-        args = (problem, layout, arm, r, D, J, fold, given, y_base)
-        refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(forms, cols, *args)
-        # further forms, judged on the model linearised at the refit (a large effect moves
-        # the solution far from the geometric fit, where the first linearisation was made)
-        while len(forms) <= MAX_REFINEMENTS:
-            free = np.concatenate([np.arange(n_geo), n_geo + _columns(forms, cols)])
-            blocks = {c: J1[:, n_geo + _columns([c], cols)] for c in same if c not in forms}
-            base = (ho1.loglik, ho1.sum_of_squares)
-            found = _best_addition(r1, J1[:, free], blocks, fold, base)
-            if found is None:
-                break
-            forms.append(found[0])
-            gains.append(float(found[1][0] - base[0]))
-            refit_info, parameters, ho1, p_after, y1, r1, J1 = _refit(
-                forms, cols, *args, y_start=y1
-            )
-        if _implausible(parameters):
-            # a richer or more flexible form that comes out physically impossible (a negative
-            # per-cable compliance) stands in for noise or for another shape: the plainest
-            # plausible form of the same effect at the same place is refitted instead
-            alternatives = [forms[0]] if len(forms) > 1 else []
-            alternatives += sorted(
-                (c for c in same if c is not forms[0] and not c.effect.refinement),
-                key=lambda c: -_score(r, np.hstack([D, J[:, cols[c]]]), fold)[0],
-            )
-            for alt in alternatives:
-                trial = _refit([alt], cols, *args)
-                if not _implausible(trial[1]):
-                    refit_info, parameters, ho1, p_after, y1, r1, J1 = trial
-                    forms, gains, best = [alt], [float(ho1.loglik - ho0.loglik)], alt
-                    break
-        refit_info["forms"] = [
-            {"variant": c.variant or None, "heldout_gain": g, "n_params": len(c.parameters(arm))}
-            for c, g in zip(forms, gains, strict=True)
-        ]
-        after = _errors(ho1, layout, p_after)
+        narrowed = [c for c in significant if (c.name, c.location) in only]
+        fit, ties = _select(narrowed or significant, evals, lin, s.live)
+        best = fit.lead
+        refit_info = fit.info
+        parameters = fit.parameters
+        ho1 = fit.heldout
+        after = _errors(ho1, layout, fit.p_after)
         explained = min(
             _explained(ho0.statistic - N, ho1.statistic - N),
             _explained(
@@ -689,10 +831,13 @@ def diagnose(
             ),
         )
         refit_info["explained_fraction_heldout"] = float(explained)
-        U1 = stats.orthonormal_basis(
-            J1[:, np.concatenate([np.arange(n_geo), n_geo + _columns(forms, cols)])]
+        fitted = np.concatenate([np.arange(n_geo), n_geo + _columns(fit.forms, cols)])
+        U1 = stats.orthonormal_basis(fit.J[:, fitted])
+        struct1 = structure(fit.r, U1)
+        after_rows, _ = _locate(
+            s.probes, cols, fit.r, fit.J[:, n_geo:], U1, N - U1.shape[1], alpha, floor2
         )
-        struct1 = structure(r1, U1)
+        refit_info["probes_after"] = after_rows[:3]
         explained = _explained(struct0.gain, struct1.gain)
         refit_info["explained_fraction_structure"] = float(explained)
         refit_info["explained_fraction"] = float(
@@ -703,19 +848,34 @@ def diagnose(
             "p_value": struct1.p_value,
             "scale": _num(struct1.scale),
         }
+        tested = chosen[(best.name, best.location)]
+        rival = _outdone(tested, evals[tested]["gain"], s.probes, probe_rows, lin, ho0, alpha)
         implausible = _implausible(parameters)
         if implausible:
             # never report an effect whose estimate is physically impossible (a negative
             # compliance): it stands in for something else
             refit_info["rejected"] = {
                 "candidate": best.label,
-                "reason": "physically implausible estimate: " + "; ".join(implausible),
+                "reason": "its estimate is physically implausible: " + "; ".join(implausible),
+            }
+            effect_name = "unattributed"
+        elif rival is not None:
+            # a generic probe of no more parameters elsewhere predicts held-out poses better:
+            # the effect's form is not what the data single out
+            refit_info["rejected"] = {
+                "candidate": best.label,
+                "reason": (
+                    f"it is not specific: a generic {rival['kind']} at the {rival['location']} "
+                    f"({rival['n_params']} parameters, no more than its {rival['against']}) "
+                    f"predicts held-out poses better (log-likelihood gain "
+                    f"{rival['heldout_gain']:.1f} against {rival['candidate_gain']:.1f})"
+                ),
             }
             effect_name = "unattributed"
         elif (
             given
-            and p_after is not None
-            and p_after < alpha
+            and fit.p_after is not None
+            and fit.p_after < alpha
             and refit_info["explained_fraction_heldout"] < EXPLAINED_MIN
         ) or (not given and struct1.p_value < alpha and explained < EXPLAINED_MIN):
             # a misfit remains that the effect does not explain: a shape the vocabulary lacks
@@ -723,7 +883,8 @@ def diagnose(
             # structure that the joint states still predict)
             effect_name = "unattributed"
         else:
-            y_model, model_forms = y1, list(forms)
+            y_model = fit.y
+            free = fitted
             effect_name = best.name
             located_in = best.location
             row = by_key[(best.name, best.location)]
@@ -733,48 +894,46 @@ def diagnose(
     elif mismatch:
         effect_name = "unattributed"
 
+    indistinguishable: dict | None = None
+    if located_in is not None and fit is not None and ties:
+        indistinguishable = {
+            "within_nats": RIVAL_NATS,
+            "candidates": [
+                {
+                    "candidate": f.lead.label,
+                    "variant": f.lead.variant or None,
+                    "heldout_sum_of_squares": float(f.heldout.sum_of_squares),
+                }
+                for f in [fit, *ties]
+            ],
+        }
     close_rivals = []
-    if located_in is not None and best is not None:
-        top = by_key[(best.name, best.location)].heldout_gain or 0.0
+    if located_in is not None and fit is not None:
+        top = by_key[(fit.lead.name, fit.lead.location)].heldout_gain or 0.0
         close_rivals = [
-            {"candidate": r.label, "heldout_gain": r.heldout_gain}
-            for r in rows
-            if not r.selected
-            and r.heldout_gain is not None
-            and r.heldout_gain >= top - RIVAL_NATS
-            and (r.p_value if r.p_value is not None else 1.0) < alpha
+            {"candidate": row.label, "heldout_gain": row.heldout_gain}
+            for row in rows
+            if not row.selected
+            and row.heldout_gain is not None
+            and row.heldout_gain >= top - RIVAL_NATS
+            and (row.p_value if row.p_value is not None else 1.0) < alpha
         ]
 
     location_source = None if located_in is None else "candidate"
     structure_rows: list[dict] = []
     if effect_name == "unattributed":
-        located_in = probe_place
-        location_source = None if located_in is None else "probe"
-        # where the residual's structure lives: the module (or column) whose regressors
-        # alone predict it best
-        gp = struct0.group_p if struct0.group_p is not None else np.ones(0)
-        by_group: list[tuple[float, str]] = sorted(
-            (min(1.0, len(group_names) * float(gp[g])), name)
-            for g, name in enumerate(group_names)
-            if g < gp.size
+        parameters = {}
+        best_p = None if fit is None else by_key[(fit.lead.name, fit.lead.location)].p_value
+        located_in, location_source, structure_rows = _locate_unattributed(
+            arm,
+            struct0,
+            group_names,
+            probe_rows,
+            probe_place,
+            alpha,
+            None if fit is None else (fit.lead.location, best_p, refit_info["explained_fraction"]),
+            rival,
         )
-        structure_rows = [{"location": name, "p_value": p_g} for p_g, name in by_group]
-        if by_group and by_group[0][0] < alpha:
-            located_in = _place(arm, by_group[0][1], probe_rows, alpha)
-            location_source = "structure"
-        if best is not None:
-            parameters = {}
-            # the partial candidate places it, unless a generic probe elsewhere explains the
-            # residual better than the candidate does (a link growing with time that the
-            # mount's drift only partly mimics)
-            elsewhere = [
-                row
-                for row in probe_rows
-                if row["location"] != best.location
-                and row["p_value"] < by_key[(best.name, best.location)].p_value
-            ]
-            if refit_info["explained_fraction"] >= LOCATE_MIN and not elsewhere:
-                located_in, location_source = best.location, "partial candidate"
 
     not_ident = list(ABSORBED_EXACTLY) + [
         f"{row.label}: the frame errors absorb it for this pose set (absorbed fraction "
@@ -794,6 +953,13 @@ def diagnose(
     if meas.points is not None:
         sigma_pt = np.asarray(problem.sigma_pt)[0]
         used["points_mm"] = {n: float(v) for n, v in zip(meas.point_names, sigma_pt, strict=True)}
+    source = "given" if given else "estimated"
+    if not given:
+        used["estimated_from"] = (
+            "the residual of the refit with the named effect"
+            if passes > 1
+            else "the residual of the geometric fit"
+        )
     diag = Diagnosis(
         mismatch=bool(mismatch),
         p_value=float(p_value),
@@ -803,7 +969,7 @@ def diagnose(
         candidates=rows,
         heldout_before=before,
         heldout_after=after,
-        noise={**used, "source": "given" if given else "estimated"},
+        noise={**used, "source": source},
         not_identifiable_from_poses=not_ident,
         tests={
             "heldout_chi2": {
@@ -822,7 +988,7 @@ def diagnose(
                 "p_value": lof.p_value,
                 "df_lack_of_fit": lof.df_lack_of_fit,
                 "df_pure_error": lof.df_pure_error,
-                "repeated_groups": len(groups),
+                "repeated_groups": len(s.repeats),
                 "applicable": lof.applicable,
             },
             "structure": {
@@ -837,14 +1003,15 @@ def diagnose(
         details={
             "alpha": alpha,
             "folds": int(fold.max() + 1),
-            "seed": seed,
+            "seed": s.seed,
             "n_poses": m,
             "n_frame_params": arm.n_params,
             "noise_floor": {"delta_p_mm": floor[0], "delta_R_rad": _num(floor[1])},
-            "rounding_floor": {"position_mm": floor_phys[0], "rotation_rad": floor_phys[1]},
+            "rounding_floor": {"position_mm": s.floor_phys[0], "rotation_rad": s.floor_phys[1]},
             "noise_suggested": _suggested_noise(r, df_resid, layout, meas.point_names),
+            "noise_passes": passes,
             "geometric_fit": {
-                **fit_info,
+                **s.fit_info,
                 "rank": int(rank),
                 "n_params": n_geo,
                 "n_marker_coordinates": 3 * len(problem.calibrated),
@@ -853,25 +1020,196 @@ def diagnose(
             "refit": refit_info or None,
             "probes": probe_rows,
             "not_applicable": [
-                {"effect": r.effect, "location": r.location, "reason": r.skipped}
-                for r in not_applicable
+                {"effect": row.effect, "location": row.location, "reason": row.skipped}
+                for row in not_applicable
             ],
             "structure_by_location": structure_rows,
-            "best_candidate": None if best is None else best.label,
+            "best_candidate": None if fit is None else fit.lead.label,
             "close_rivals": close_rivals,
+            "indistinguishable": indistinguishable,
             "location_source": location_source,
         },
     )
     diag.residuals = {
         "pose_ids": list(meas.pose_ids),
         "before": _per_row(ho0.residual * layout.scale, layout, m),
-        "after": _per_row((ho1 if ho1 is not None else ho0).residual * layout.scale, layout, m),
+        "after": _per_row(
+            (fit.heldout if fit is not None else ho0).residual * layout.scale, layout, m
+        ),
     }
+    model_forms = list(fit.forms) if free is not None and fit is not None else []
     diag.refit_arm = _refit_model(
-        problem, y_model, list(own) + model_forms, cols, arm, meas.point_names
+        problem, y_model, list(s.own) + model_forms, cols, arm, meas.point_names
     )
-    diag.report = render_report(diag, best)
-    return diag
+    diag.report = render_report(diag, None if fit is None else fit.lead)
+    named = frozenset(
+        (f.lead.name, f.lead.location) for f in ([fit, *ties] if fit and free is not None else [])
+    )
+    return _Verdict(diag, y_model, free, passes, named)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Linearised:
+    """The problem linearised at the base model's fit, which every candidate's refit starts
+    from: ``r (N,)`` the whitened residual, ``D (N, n_geo)`` and ``J (N, p)`` the Jacobians of
+    the base model's and of the feature columns, ``fold (N,)`` each entry's fold."""
+
+    problem: Extended
+    rows: _Rows
+    arm: Arm
+    r: np.ndarray
+    D: np.ndarray
+    J: np.ndarray
+    fold: np.ndarray
+    given: bool
+    y_base: np.ndarray
+    cols: dict[Candidate, slice]
+
+
+def _select(
+    significant: Sequence[Candidate], evals: dict, lin: _Linearised, live: Sequence[Candidate]
+) -> tuple[_Fit, list[_Fit]]:
+    """The refits of the significant candidates whose merit is within :data:`RIVAL_NATS` or
+    :data:`CONTENDER_FRACTION` of the best one's (at most :data:`MAX_CONTENDERS`): the
+    selected one, and the other plausible ones whose held-out sum of squares is within
+    ``2 RIVAL_NATS`` of it (a log-likelihood ratio within :data:`RIVAL_NATS`) or that predict
+    better without paying for their extra parameters: these poses cannot tell them apart.
+
+    The plausible refit of the highest merit is selected unless another predicts held-out
+    poses better by more than its extra parameters cost (:func:`_predicts_better`, one
+    parameter at least); an implausible refit only where every contender's is."""
+    top = max(evals[c]["merit"] for c in significant)
+    margin = max(RIVAL_NATS, CONTENDER_FRACTION * top)
+    contenders = sorted(
+        (c for c in significant if evals[c]["merit"] >= top - margin),
+        key=lambda c: -evals[c]["merit"],
+    )[:MAX_CONTENDERS]
+    fits = [_fit_effect(c, lin, live) for c in contenders]
+    plausible = [f for f in fits if not _implausible(f.parameters)]
+    if not plausible:
+        return fits[0], []
+    best = plausible[0]
+    for f in plausible[1:]:
+        extra = max(1, _size(f, lin.cols) - _size(best, lin.cols))
+        if _predicts_better(f, best, extra):
+            best = f
+    ties = [
+        f
+        for f in plausible
+        if f is not best
+        and f.heldout.sum_of_squares <= best.heldout.sum_of_squares + 2.0 * RIVAL_NATS
+    ]
+    return best, ties
+
+
+def _fit_effect(tested: Candidate, lin: _Linearised, live: Sequence[Candidate]) -> _Fit:
+    """The joint refit of the frames and a candidate's effect at its place.
+
+    The chains of forms (:func:`_chains`) of the tested form and of the :data:`MAX_CHAINS`
+    - 1 best others are refitted, each growing further forms on the model linearised at its
+    refit while they pay (up to :data:`MAX_REFINEMENTS`; a large effect moves the solution
+    far from the geometric fit, where the first linearisation was made). Of these refits, the
+    one with the fewest parameters (ties: the tested form's) is kept unless another predicts
+    held-out poses better by more than the parameters of its forms that the kept one lacks
+    cost (:func:`_predicts_better`, :func:`_extra`); a physically
+    implausible refit only where every one is, after the forms added last are dropped one by
+    one (:func:`_plausible_prefix`) and the plainest forms of the effect at the place are
+    tried (a richer or more flexible form that comes out impossible, such as
+    a negative per-cable compliance, stands in for noise or for another shape)."""
+    r, D, J, fold, cols = lin.r, lin.D, lin.J, lin.fold, lin.cols
+    place = [c for c in live if (c.name, c.location) == (tested.name, tested.location)]
+    chains = _chains(tested, place, cols, r, D, J, fold, lin.arm)
+    fits = [_plausible_prefix(_grow(_refit(f, g, lin), place, lin), lin) for f, g in chains]
+    kept: _Fit | None = None
+    # the fewest parameters first (ties: the tested form's chain): a larger one replaces it
+    # only where it pays for what it adds
+    for fit in sorted(fits, key=lambda f: _size(f, cols)):
+        if _implausible(fit.parameters):
+            continue
+        if kept is None or _predicts_better(fit, kept, _extra(fit, kept, cols)):
+            kept = fit
+    if kept is None:
+        geometric = stats.heldout(r, D, fold).loglik
+        kept = fits[0]
+        for c in sorted(
+            (c for c in place if c is not kept.lead and not c.effect.refinement),
+            key=lambda c: -_score(r, np.hstack([D, J[:, cols[c]]]), fold)[0],
+        ):
+            trial = _refit([c], [0.0], lin)
+            if not _implausible(trial.parameters):
+                trial.gains[0] = float(trial.heldout.loglik - geometric)
+                kept = trial
+                break
+    kept.info["forms"] = [
+        {"variant": c.variant or None, "heldout_gain": g, "n_params": len(c.parameters(lin.arm))}
+        for c, g in zip(kept.forms, kept.gains, strict=True)
+    ]
+    return kept
+
+
+def _plausible_prefix(history: Sequence[_Fit], lin: _Linearised) -> _Fit:
+    """The last physically plausible refit of ``history`` (a chain's refit, then each with one
+    form added, :func:`_grow`); where none is, the refit of the longest plausible prefix of
+    the first one's forms (the forms added last dropped one by one); the last refit where no
+    prefix is plausible either."""
+    for fit in reversed(history):
+        if not _implausible(fit.parameters):
+            return fit
+    first = history[0]
+    for k in range(len(first.forms) - 1, 0, -1):
+        trial = _refit(first.forms[:k], first.gains[:k], lin)
+        if not _implausible(trial.parameters):
+            return trial
+    return history[-1]
+
+
+def _fit_score(fit: _Fit) -> tuple[float, float]:
+    return fit.heldout.loglik, fit.heldout.sum_of_squares
+
+
+def _predicts_better(fit: _Fit, than: _Fit, k: int = 0) -> bool:
+    """Whether refit ``fit`` predicts held-out poses better than ``than`` by more than ``k``
+    parameters cost: its plain held-out sum of squares (whitened; what ``delta_p`` reports) is
+    lower by more than ``2 REFINE_GAIN_PER_PARAM k``. The sum of squares, not the
+    log-likelihood: a refit whose parameters are poorly determined predicts with a wide
+    covariance, which hides its prediction errors from the likelihood."""
+    return fit.heldout.sum_of_squares < than.heldout.sum_of_squares - 2.0 * (
+        REFINE_GAIN_PER_PARAM * k
+    )
+
+
+def _size(fit: _Fit, cols: dict) -> int:
+    """The number of effect parameters of a refit."""
+    return int(_columns(fit.forms, cols).size)
+
+
+def _extra(fit: _Fit, than: _Fit, cols: dict) -> int:
+    """The parameters of ``fit``'s forms that ``than`` does not have (at least one): what a
+    switch from ``than`` to ``fit`` must pay for."""
+    new = [c for c in fit.forms if c not in than.forms]
+    return max(1, int(_columns(new, cols).size)) if new else 1
+
+
+def _grow(fit: _Fit, place: Sequence[Candidate], lin: _Linearised) -> list[_Fit]:
+    """``fit``, then its refits with further forms of ``place`` that join it added one at a
+    time, judged on the model linearised at the last refit, while they pay
+    (:func:`_best_addition`), up to :data:`MAX_REFINEMENTS` added forms."""
+    n_geo = lin.D.shape[1]
+    history = [fit]
+    while len(fit.forms) <= MAX_REFINEMENTS:
+        free = np.concatenate([np.arange(n_geo), n_geo + _columns(fit.forms, lin.cols)])
+        blocks = {
+            c: fit.J[:, n_geo + _columns([c], lin.cols)] for c in place if _joins(c, fit.forms)
+        }
+        base = _fit_score(fit)
+        found = _best_addition(fit.r, fit.J[:, free], blocks, lin.fold, base)
+        if found is None:
+            break
+        fit = _refit(
+            [*fit.forms, found[0]], [*fit.gains, float(found[1][0] - base[0])], lin, y_start=fit.y
+        )
+        history.append(fit)
+    return history
 
 
 def _refit_model(
@@ -915,12 +1253,20 @@ def _not_in_model(
     ]
 
 
-def _place(arm: Arm, regressor: str, probe_rows: Sequence[Mapping] = (), alpha: float = 1.0) -> str:
+WORKSPACE = "workspace"
+"""The structure test's regressor group of where the tool is (its measured position): a misfit
+that follows it and no single module's states (a measuring device's distortion, a field in
+the workspace) lives at no place of the chain."""
+
+
+def _place(
+    arm: Arm, regressor: str, probe_rows: Sequence[Mapping] = (), alpha: float = 1.0
+) -> str | None:
     """Where a misfit predictable from ``regressor`` lives: the module itself; for ``time_s``
     the fixed frame whose time probe (:class:`cdra_jax.physics.probes.TimeProbe`, the same
     parameter count at every frame) explains it best, when one is significant: a link that
     grows as it warms up, or the base (a drift of the mount, also where none is); the tool for
-    ``payload_kg``."""
+    ``payload_kg``; nowhere in the chain (``None``) for the :data:`WORKSPACE`."""
     if regressor == "time_s":
         timed = [row for row in probe_rows if row["kind"] == TimeProbe.summary]
         best = min(timed, key=lambda row: (row["p_value"], -(row["F"] or 0.0)), default=None)
@@ -929,14 +1275,17 @@ def _place(arm: Arm, regressor: str, probe_rows: Sequence[Mapping] = (), alpha: 
         return arm.frame_names[0]
     if regressor == "payload_kg":
         return arm.frame_names[-1]
+    if regressor == WORKSPACE:
+        return None
     return regressor
 
 
 def _regressors(arm: Arm, meas: Measurements) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """``(X (m, d), groups (d,), names)``: what a missing effect may depend on, per row: the
-    module states (one group per module: its entries together) and each auxiliary column that
-    varies (``time_s``, ``payload_kg``), with the group names
-    (module names, the column's name else)."""
+    module states (one group per module: its entries together), each auxiliary column that
+    varies (``time_s``, ``payload_kg``), and the :data:`WORKSPACE` (the measured tool
+    position, or the mean of a row's seen points), with the group names (module names, the
+    column's name, ``"workspace"``)."""
     cols = [np.asarray(meas.q, float)]
     groups = [int(g) for g in np.repeat(np.arange(len(arm.modules)), [m.dof for m in arm.modules])]
     names = list(arm.module_names)
@@ -946,7 +1295,28 @@ def _regressors(arm: Arm, meas: Measurements) -> tuple[np.ndarray, np.ndarray, l
             cols.append(v[:, None])
             groups.append(len(names))
             names.append(k)
+    where = _row_positions(meas)
+    if np.all(np.isfinite(where)):
+        cols.append(where)
+        groups += [len(names)] * 3
+        names.append(WORKSPACE)
     return np.concatenate(cols, axis=1), np.asarray(groups), names
+
+
+def _row_positions(meas: Measurements) -> np.ndarray:
+    """``(m, 3)`` where the tool is in each row (mm): the measured full pose's origin, else the
+    mean of the row's seen points (NaN where a row has neither)."""
+    out = np.full((meas.m, 3), np.nan)
+    if meas.points is not None:
+        pts = np.asarray(meas.points, float)
+        seen = np.isfinite(pts).all(axis=-1)
+        total = np.where(seen[..., None], pts, 0.0).sum(axis=1)
+        n = seen.sum(axis=1)[:, None]
+        out = np.where(n > 0, total / np.maximum(n, 1), np.nan)
+    if meas.full_poses is not None:
+        pos = np.asarray(meas.full_poses, float)[:, :3, 3]
+        out = np.where(np.isfinite(pos), pos, out)
+    return out
 
 
 def _finite_columns(F: Features) -> tuple[Features, np.ndarray]:
@@ -998,6 +1368,15 @@ def _explained(excess_before: float, excess_after: float) -> float:
     return 1.0 - excess_after / excess_before if excess_before > 0 else 1.0
 
 
+def _joins(c: Candidate, forms: Sequence[Candidate]) -> bool:
+    """Whether form ``c`` may join a refit of ``forms`` (one effect at one place): it is not
+    one of them, and it and each of them accept one another (:meth:`Effect.joins`: one
+    mechanism with one hidden constant, such as a drum's radius)."""
+    return c not in forms and all(
+        c.effect.joins(f.effect) and f.effect.joins(c.effect) for f in forms
+    )
+
+
 def _columns(forms: Sequence[Candidate], cols: dict) -> np.ndarray:
     return np.concatenate([np.arange(cols[c].start, cols[c].stop) for c in forms])
 
@@ -1033,59 +1412,96 @@ def _best_addition(r, A, blocks, fold, base):
     return c, sc
 
 
-def _refinements(best, same, cols, r, D, J, fold):
-    """The forms of ``best``'s effect at its location (its variants and refinements, ``same``)
-    to start the refit with, chosen on the linearised model at the geometric fit.
+def _chains(best, place, cols, r, D, J, fold, arm):
+    """Chains of forms of ``best``'s effect at its location to start refits with, chosen on
+    the model linearised at the geometric fit: ``[(forms, gains)]``, the chain from the
+    tested form ``best`` first, then those from the other forms at the place (``place``:
+    its variants and refinements), the best held-out prediction first, as long as it comes
+    within :data:`RIVAL_NATS` or :data:`CONTENDER_FRACTION` of the best chain's held-out
+    gain (at most :data:`MAX_CHAINS` in all).
 
-    The start is the tested form ``best``, or the single form with the largest held-out
-    log-likelihood where that one pays against it (:func:`_pays`; a refinement such as a
-    settling drift may replace the form it refines). Then forward selection
-    (:func:`_best_addition`). The refit adds further forms on the model linearised at its own
-    solution (:func:`diagnose`), up to :data:`MAX_REFINEMENTS` in all. Returns the forms and
-    the held-out log-likelihood gain each added (the first: over the geometric fit).
+    From each start (a tested form, or a refinement that is a complete form by itself,
+    :attr:`~cdra_jax.physics.Effect.alone`), forward selection adds the forms that join it
+    (:func:`_joins`, :func:`_best_addition`): a drum radius or a harmonic that the F test
+    ranked second may, with its overtone, describe the data better; a refinement such as a
+    settling drift may replace the form it refines. A form joins only where the linearised
+    estimates of the chain with it stay physically plausible (a power law that joins a
+    linear stretch by turning its compliances negative describes another shape). ``gains``:
+    the held-out log-likelihood gain each form added (the first: over the geometric fit).
     """
-    size = lambda c: cols[c].stop - cols[c].start  # noqa: E731
     geometric = stats.heldout(r, D, fold).loglik
-    singles = {c: _score(r, np.hstack([D, J[:, cols[c]]]), fold) for c in same}
-    forms = [best]
-    base = singles[best] if best in singles else _score(r, np.hstack([D, J[:, cols[best]]]), fold)
-    rival = max(same, key=lambda c: singles[c][0]) if same else best
-    if rival is not best and _pays(base, singles[rival], size(rival)):
-        forms, base = [rival], singles[rival]
-    gains = [float(base[0] - geometric)]
-    for _ in range(MAX_REFINEMENTS):
-        A = np.hstack([D, J[:, _columns(forms, cols)]])
-        blocks = {c: J[:, cols[c]] for c in same if c not in forms}
-        found = _best_addition(r, A, blocks, fold, base)
-        if found is None:
+
+    def plausible(forms):
+        y, sd = _linear_fit(r, np.hstack([D, J[:, _columns(forms, cols)]]), 1.0)
+        at = D.shape[1]
+        for c in forms:
+            k = cols[c].stop - cols[c].start
+            if _implausible(_estimates(y[at : at + k], sd[at : at + k], c, arm)):
+                return False
+            at += k
+        return True
+
+    def chain(start):
+        forms = [start]
+        base = _score(r, np.hstack([D, J[:, cols[start]]]), fold)
+        gains = [float(base[0] - geometric)]
+        for _ in range(MAX_REFINEMENTS):
+            A = np.hstack([D, J[:, _columns(forms, cols)]])
+            blocks = {
+                c: J[:, cols[c]] for c in place if _joins(c, forms) and plausible([*forms, c])
+            }
+            found = _best_addition(r, A, blocks, fold, base)
+            if found is None:
+                break
+            c, sc = found
+            gains.append(float(sc[0] - base[0]))
+            forms.append(c)
+            base = sc
+        return forms, gains, base[0]
+
+    starts = [c for c in place if c is not best and (not c.effect.refinement or c.effect.alone)]
+    first = chain(best)
+    others = sorted((chain(c) for c in starts), key=lambda t: -t[2])
+    top = max([first[2]] + [t[2] for t in others])
+    margin = max(RIVAL_NATS, CONTENDER_FRACTION * (top - geometric))
+    out, seen = [], set()
+    for forms, gains, score in [first, *others]:
+        if len(out) == MAX_CHAINS:
             break
-        c, sc = found
-        gains.append(float(sc[0] - base[0]))
-        forms.append(c)
-        base = sc
-    return forms, gains
+        if frozenset(forms) in seen:  # the same forms reached from another start
+            continue
+        if out and score < top - margin:  # not close enough to be worth a refit
+            continue
+        seen.add(frozenset(forms))
+        out.append((forms, gains))
+    return out
 
 
-def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_base, y_start=None):
-    """Joint LM refit of the frame errors and the parameters of ``forms`` (the selected
-    candidate first, then the forms added to it), from ``y_start`` (all entries of ``y``) or
-    from the linearised fit at the geometric solution. Returns ``(info, parameters, heldout,
-    p_after, y, r1, J1)`` with ``y`` all entries, ``r1`` the whitened residual and ``J1`` the
-    Jacobian of every column at the refit (for further forms). Parameters of added forms are
-    named ``<variant>:<name>``."""
-    n_geo = D.shape[1]
+def _refit(
+    forms: Sequence[Candidate],
+    gains: Sequence[float],
+    lin: _Linearised,
+    y_start: np.ndarray | None = None,
+) -> _Fit:
+    """Joint LM refit of the frame errors and the parameters of ``forms`` (the leading form
+    first, then the forms added to it, with the held-out ``gains`` each added), from
+    ``y_start`` (all entries of ``y``) or from the linearised fit at the base model's fit.
+    Parameters of added forms are named ``<variant>:<name>``."""
+    problem, rows, arm, cols = lin.problem, lin.rows, lin.arm, lin.cols
+    n_geo = lin.D.shape[1]
     sel = _columns(forms, cols)
     free = np.concatenate([np.arange(n_geo), n_geo + sel])
     if y_start is None:
-        y_lin, _ = _linear_fit(r, np.hstack([D, J[:, sel]]), 1.0)
-        y0 = np.array(y_base, float)
+        y_lin, _ = _linear_fit(lin.r, np.hstack([lin.D, lin.J[:, sel]]), 1.0)
+        y0 = np.array(lin.y_base, float)
         y0[free] += y_lin
     else:
         y0 = np.array(y_start, float)
-    y_all, ok, steps = joint_refit(y0, free, problem)
-    r1, J1_all = residual_and_jacobian(jnp.asarray(y_all, problem.q.dtype), problem)
-    r1 = np.asarray(r1, float)[rows.take]
-    J1_all = np.asarray(J1_all, float)[rows.take]
+    y_all, ok, steps, (r1, J1_all) = joint_refit(
+        y0, free, problem, max_steps=REFIT_STEPS, rtol=REFIT_RTOL
+    )
+    r1 = r1[rows.take]
+    J1_all = J1_all[rows.take]
     J1 = J1_all[:, free]
     U1 = stats.orthonormal_basis(J1)
     dof = r1.size - U1.shape[1]
@@ -1100,11 +1516,11 @@ def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_base, y_star
         est = _estimates(y[at : at + k], sd[at : at + k], c, arm)
         at += k
         params.update(est if i == 0 else {f"{c.variant}:{n}": v for n, v in est.items()})
-    ho1 = stats.heldout(r1, J1, fold, with_null=given)
+    ho1 = stats.heldout(r1, J1, lin.fold, with_null=lin.given)
     # Q and the plain sum of squares, Bonferroni: a refit with many parameters widens its
     # predictive covariance, which deflates Q but not |e|^2
     p_after = None
-    if given:
+    if lin.given:
         p_after = min(
             1.0,
             2.0 * min(ho1.p_value(NOISE_TOLERANCE), ho1.p_value_sum_of_squares(NOISE_TOLERANCE)),
@@ -1117,11 +1533,94 @@ def _refit(forms, cols, problem, rows, arm, r, D, J, fold, given, y_base, y_star
         "dof": int(dof),
         "interval_inflation": float(np.sqrt(inflate)),
         "frame_errors_change": {
-            name: [float(v) for v in (y_all - y_base)[6 * j : 6 * j + 6]]
+            name: [float(v) for v in (y_all - lin.y_base)[6 * j : 6 * j + 6]]
             for j, name in enumerate(arm.frame_names)
         },
     }
-    return info, params, ho1, p_after, np.asarray(y_all, float), r1, J1_all
+    return _Fit(
+        list(forms), list(gains), info, params, ho1, p_after, np.asarray(y_all, float), r1, J1_all
+    )
+
+
+def _outdone(
+    tested: Candidate,
+    gain: float | None,
+    probes: Sequence[Candidate],
+    probe_rows: Sequence[Mapping],
+    lin: _Linearised,
+    ho0: stats.HeldOut,
+    alpha: float,
+) -> dict | None:
+    """The generic probe (:mod:`cdra_jax.physics.probes`) at another place, with no more
+    parameters than the tested form of the selected effect and significant on its own, that
+    predicts held-out poses better than that form by more than :data:`RIVAL_NATS` (the
+    largest such gain), or ``None``. Its form is then not what the data single out: a mount
+    drift that a link growing with time only partly mimics is outdone by the time probe at
+    that link (the same six parameters)."""
+    if gain is None:
+        return None
+    k = len(tested.parameters(lin.arm))
+    significant = {(row["location"], row["kind"]) for row in probe_rows if row["p_value"] < alpha}
+    best: dict | None = None
+    for c in probes:
+        size = lin.cols[c].stop - lin.cols[c].start
+        if c.location == tested.location or size > k:
+            continue
+        if (c.location, c.effect.summary) not in significant:
+            continue
+        g = _score(lin.r, np.hstack([lin.D, lin.J[:, lin.cols[c]]]), lin.fold)[0] - ho0.loglik
+        if g > gain + RIVAL_NATS and (best is None or g > best["heldout_gain"]):
+            best = {
+                "location": c.location,
+                "kind": c.effect.summary,
+                "n_params": size,
+                "heldout_gain": float(g),
+                "candidate_gain": float(gain),
+                "against": f"{k} of {tested.label}",
+            }
+    return best
+
+
+def _locate_unattributed(
+    arm: Arm,
+    struct0: stats.Structure,
+    group_names: Sequence[str],
+    probe_rows: Sequence[Mapping],
+    probe_place: str | None,
+    alpha: float,
+    partial: tuple[str, float | None, float] | None,
+    rival: dict | None,
+) -> tuple[str | None, str | None, list[dict]]:
+    """Where an ``unattributed`` misfit lives: ``(location, source, structure rows)``.
+
+    In order: the generic probe that outdid the selected candidate (:func:`_outdone`); else
+    the module (or column) whose regressors alone predict the residual best when the
+    structure test is significant there (:func:`_place`); else the most significant probe.
+    Then the partial candidate ``(location, its Holm p, explained fraction)`` places it when
+    it removes at least :data:`LOCATE_MIN` of the misfit and no probe at another place is
+    more significant than it (a link growing with time that the mount's drift only partly
+    mimics is not placed at the mount)."""
+    gp = struct0.group_p if struct0.group_p is not None else np.ones(0)
+    by_group: list[tuple[float, str]] = sorted(
+        (min(1.0, len(group_names) * float(gp[g])), name)
+        for g, name in enumerate(group_names)
+        if g < gp.size
+    )
+    structure_rows = [{"location": name, "p_value": p_g} for p_g, name in by_group]
+    if rival is not None:
+        return rival["location"], "rival probe", structure_rows
+    located_in, source = probe_place, (None if probe_place is None else "probe")
+    if by_group and by_group[0][0] < alpha:
+        located_in, source = _place(arm, by_group[0][1], probe_rows, alpha), "structure"
+    if partial is not None:
+        place, p_candidate, explained = partial
+        p_candidate = 1.0 if p_candidate is None else p_candidate
+        elsewhere = [
+            row for row in probe_rows if row["location"] != place and row["p_value"] < p_candidate
+        ]
+        if explained >= LOCATE_MIN and not elsewhere:
+            located_in, source = place, "partial candidate"
+    return located_in, source, structure_rows
 
 
 def _locate(probes, cols, r, J, UD, df_resid, alpha, floor2=0.0):

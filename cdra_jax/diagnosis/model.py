@@ -117,17 +117,32 @@ def joint_refit(
     steps: the frame errors have unidentifiable directions; no compilation of its own).
 
     Returns:
-        ``(y, converged, steps)``.
+        ``(y, converged, steps, (r, J))`` with ``r (N,)`` the residual and ``J (N, len(y))``
+        the Jacobian of every entry of ``y`` at the solution (the last accepted evaluation).
     """
     y = np.array(y0, float)
     dtype = jnp.asarray(problem.arm.frames).dtype
+    latest: list = []  # the last evaluation, then the last accepted one
+    accepted: list = []
 
     def evaluate(u):
         yy = y.copy()
         yy[free] = u
         r, J = residual_and_jacobian(jnp.asarray(yy, dtype), problem)
-        return np.asarray(r, float), np.asarray(J, float)[:, free]
+        latest[:] = [np.array(u), np.asarray(r, float), np.asarray(J, float)]
+        if not accepted:
+            accepted[:] = latest
+        return latest[1], latest[2][:, free]
 
-    sol = levenberg_marquardt(evaluate, y[free], max_steps=max_steps, rtol=rtol)
+    def on_accept(u, _step):
+        accepted[:] = latest
+
+    sol = levenberg_marquardt(
+        evaluate, y[free], max_steps=max_steps, rtol=rtol, on_accept=on_accept
+    )
     y[free] = sol.u
-    return y, sol.converged, sol.steps
+    if not accepted or not np.array_equal(accepted[0], sol.u):
+        yy = jnp.asarray(y, dtype)
+        r, J = residual_and_jacobian(yy, problem)
+        accepted[:] = [sol.u, np.asarray(r, float), np.asarray(J, float)]
+    return y, sol.converged, sol.steps, (accepted[1], accepted[2])

@@ -124,7 +124,13 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         f"{det['n_poses']} poses, {det['folds']}-fold cross-validated: held-out "
         f"{_errors_text(b.delta_p_mm, b.delta_R_rad)}; noise floor "
         f"{_errors_text(floor['delta_p_mm'], floor['delta_R_rad'])} "
-        f"(noise {d.noise['source']}: {_noise_text(d.noise)}).",
+        f"(noise {d.noise['source']}: {_noise_text(d.noise)}"
+        + (
+            " from the refit with the named effect"
+            if "refit" in str(d.noise.get("estimated_from", ""))
+            else ""
+        )
+        + ").",
     ]
     parts = []
     st = t.get("structure") or {}
@@ -171,14 +177,16 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         msg = "The misfit is not explained by any effect of the vocabulary"
         rejected = (det.get("refit") or {}).get("rejected")
         if best is not None and rejected:
-            msg += f" (the best candidate, {best.label}, is not reported: its {rejected['reason']})"
+            msg += f" (the best candidate, {best.label}, is not reported: {rejected['reason']})"
         elif best is not None and det.get("refit"):
             msg += (
                 f" (the best candidate, {best.label}, removes only "
                 f"{100 * det['refit']['explained_fraction']:.0f} % of the excess held-out misfit)"
             )
         msg += "."
-        if d.located_in and det.get("location_source") == "probe":
+        if d.located_in and det.get("location_source") == "rival probe":
+            msg += f" It belongs to the {d.located_in}, where the probe that outdid it sits."
+        elif d.located_in and det.get("location_source") == "probe":
             top = det["probes"][0]
             msg += (
                 f" It belongs to the {d.located_in} (generic probe: {top['kind']}, "
@@ -188,6 +196,12 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
             msg += (
                 f" It belongs to the {d.located_in}, where the best candidate sits: an effect "
                 "of that kind but of another form than the vocabulary's."
+            )
+        elif det.get("location_source") == "structure":
+            msg += (
+                " No place of the chain explains it: it follows where the tool is in the "
+                "workspace (a measuring device's distortion, or a field of the workspace), not "
+                "one module's states."
             )
         else:
             msg += (
@@ -230,7 +244,21 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
                 "or the effect is a stand-in for another one)."
             )
         row = next(c for c in d.candidates if c.selected)
-        rivals = det.get("close_rivals") or []
+        tied = (det.get("indistinguishable") or {}).get("candidates") or []
+        if tied:
+            lines.append(
+                "Indistinguishable on these poses: "
+                + " or ".join(t["candidate"] for t in tied)
+                + " (each refitted, they predict held-out poses equally well: likelihood ratio "
+                f"within {det['indistinguishable']['within_nats']:g} nats; the first is "
+                "reported): "
+                "poses that separate them, or less noise, would tell which."
+            )
+        rivals = [
+            r
+            for r in det.get("close_rivals") or []
+            if r["candidate"] not in {t["candidate"] for t in tied}
+        ]
         if rivals:
             lines.append(
                 "Nearly as well supported on held-out poses: "

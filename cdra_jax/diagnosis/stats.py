@@ -206,16 +206,19 @@ def quadratic_form_sf(x: float, weights: np.ndarray) -> float:
 
     ``P = 1/2 + (1/pi) int_0^inf sin(th(u)) / (u rho(u)) du`` with
     ``th(u) = sum atan(w_k u) / 2 - x u / 2`` and ``rho(u) = prod (1 + w_k^2 u^2)^(1/4)``.
-    Accurate to ~1e-10 absolute; beyond that (a Chernoff bound below 1e-9) the Chernoff upper
-    bound is returned, and with fewer than 10 non-zero weights a seeded Monte Carlo estimate
-    (4e5 draws).
+    The weights may have either sign (an indefinite form: the tail of a ratio of quadratic
+    forms, :func:`structure_test`). Accurate to ~1e-10 absolute; beyond that (a Chernoff
+    bound below 1e-9) the Chernoff upper bound is returned, and with fewer than 10 non-zero
+    weights a seeded Monte Carlo estimate (4e5 draws).
     """
     w = np.asarray(weights, float)
-    w = w[w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)]
+    w = w[np.abs(w) > 1e-12 * max(float(np.abs(w).max(initial=0.0)), 1e-300)]
     if w.size == 0:
         return 1.0 if x < 0 else 0.0
-    if x <= 0:
+    if x <= 0 and w.min() > 0:
         return 1.0
+    if w.max() <= 0:
+        return 0.0 if x >= 0 else _flip(x, w)
     bound = _chernoff_sf(x, w)
     if bound < 1e-9:  # far in the tail: the bound is all the precision a p-value needs
         return bound
@@ -233,7 +236,8 @@ def quadratic_form_sf(x: float, weights: np.ndarray) -> float:
 
     # The integrand decays like u^(-1 - n/2): integrate piecewise on [0, U] with U where
     # rho(U) > 1e30, on pieces that double in length (each holds a few oscillations at most).
-    edges = [0.0, 0.5 / float(w.max())]
+    top = float(np.abs(w).max())
+    edges = [0.0, 0.5 / top]
     while 0.25 * float(np.sum(np.log1p((w * edges[-1]) ** 2))) < 70.0 and edges[-1] < 1e12:
         edges.append(2.0 * edges[-1])
     val = 0.0
@@ -245,9 +249,15 @@ def quadratic_form_sf(x: float, weights: np.ndarray) -> float:
     return float(np.clip(min(0.5 + val / np.pi, bound), 0.0, 1.0))
 
 
+def _flip(x: float, w: np.ndarray) -> float:
+    """``P(sum w z^2 > x)`` for non-positive weights and ``x < 0``: ``1 - P(sum -w z^2 >= -x)``."""
+    return 1.0 - quadratic_form_sf(-x, -w)
+
+
 def _chernoff_sf(x: float, w: np.ndarray) -> float:
-    """Chernoff upper bound ``min_t exp(-t x) E[exp(t Q)]`` of ``P(Q > x)``: far in the tail,
-    where the oscillating Imhof integral loses its digits, it is the sharper of the two."""
+    """Chernoff upper bound ``min_t exp(-t x) E[exp(t Q)]`` of ``P(Q > x)`` (``w`` with at least
+    one positive entry): far in the tail, where the oscillating Imhof integral loses its
+    digits, it is the sharper of the two."""
     if x <= float(w.sum()):
         return 1.0
     t_max = 0.5 / float(w.max())
@@ -502,10 +512,6 @@ STRUCTURE_RIDGE = 1.0
 """Ridge of the structure test's kernel smoother (whitened units: a prior signal variance equal
 to the noise variance)."""
 
-STRUCTURE_DRAWS = 5_000
-"""Monte Carlo draws of the structure test's null distribution (seeded: p-values are
-reproducible; the smallest p-value of one group and scale is about 1 / this)."""
-
 
 @dataclass
 class Structure:
@@ -562,8 +568,6 @@ def structure_test(
     groups: np.ndarray,
     *,
     scales: tuple[float, ...] = STRUCTURE_SCALES,
-    draws: int = STRUCTURE_DRAWS,
-    seed: int = 0,
 ) -> Structure:
     """Is the residual predictable from the regressors? Needs no noise value.
 
@@ -574,23 +578,23 @@ def structure_test(
     length scale, with ``H`` the leave-one-row-out smoother on that group's regressors
     (:func:`cv_smoother`, applied to each entry kind over the rows that measure it), the
     statistic is the fraction of the residual it predicts,
-    ``T = (|r|^2 - |r - H r|^2) / |r|^2``: a ratio of quadratic forms that does not depend on
-    the noise scale. Under the null (no structure: ``r = (I - U U^T) e`` with ``e`` white noise
-    of any scale) its distribution is known exactly and sampled (seeded Monte Carlo). Unlike a
-    chi-square against a noise value, it cannot be hidden by a noise estimate that absorbed the
-    misfit. One group at a time: an effect usually lives at one module, and the group that
-    predicts the residual is where it lives.
+    ``T = (|r|^2 - |r - H r|^2) / |r|^2 = r^T A r / r^T r`` with ``A = H + H^T - H^T H``: a
+    ratio of quadratic forms that does not depend on the noise scale. Under the null (no
+    structure: ``r = P e``, ``P = I - U U^T``, ``e`` white noise of any scale) its tail is
+    exact: ``P(T' >= T) = P(e^T P (A - T I) P e >= 0) = P(sum_i (mu_i - T) z_i^2 >= 0)``
+    with ``mu_i`` the eigenvalues of ``P A P`` on the complement of ``U`` (Imhof's integral
+    of an indefinite form, :func:`quadratic_form_sf`). Unlike a chi-square against a noise
+    value, it cannot be hidden by a noise estimate that absorbed the misfit. One group at a
+    time: an effect usually lives at one module, and the group that predicts the residual is
+    where it lives.
     """
     X = np.asarray(X, float)
     groups = np.asarray(groups)
     N = r.size
     names = [g for g in np.unique(groups) if np.any(X[:, groups == g].std(axis=0) > 0)]
-    if not names or N == 0:
+    if not names or N == 0 or U.shape[1] >= N:
         return Structure(0.0, 1.0, 0.0, float("nan"))
     Z = _standardise(X)
-    E = np.random.default_rng(seed).standard_normal((draws, N))
-    E = E - (E @ U) @ U.T  # null residuals: white noise projected off the fitted columns
-    en = np.sum(E * E, axis=1)
     rr = float(r @ r)
     # Each entry kind is smoothed over its own rows: the quadratic form is block diagonal, one
     # block per kind (kinds measured in the same rows share the smoother).
@@ -600,8 +604,7 @@ def structure_test(
     for g in names:
         Zg = Z[:, groups == g]
         for s in scales:
-            gain = 0.0
-            Tn_num = np.zeros(draws)
+            A = np.zeros((N, N))
             cache: dict[bytes, np.ndarray] = {}
             for idx in kinds:
                 rows_k = row[idx]
@@ -609,13 +612,15 @@ def structure_test(
                 if key not in cache:
                     H = cv_smoother(Zg[rows_k], s)
                     cache[key] = H + H.T - H.T @ H
-                A = cache[key]
-                gain += float(r[idx] @ A @ r[idx])
-                Ek = E[:, idx]
-                Tn_num += np.sum((Ek @ A) * Ek, axis=1)
+                A[np.ix_(idx, idx)] = cache[key]
+            gain = float(r @ A @ r)
             T = gain / rr if rr > 0 else 0.0
-            Tn = Tn_num / en
-            p = min(1.0, len(scales) * (1.0 + float(np.sum(Tn >= T))) / (draws + 1.0))
+            # P (A - T I) P with P = I - U U^T: eigenvalues mu_i - T on the complement of U,
+            # zero on U (dropped by quadratic_form_sf)
+            M = A - T * np.eye(N)
+            MU = M @ U
+            M = M - MU @ U.T - U @ MU.T + U @ ((U.T @ MU) @ U.T)
+            p = min(1.0, len(scales) * quadratic_form_sf(0.0, np.linalg.eigvalsh(M)))
             group_p[g] = min(group_p[g], p)
             if best is None or p < best.p_value:
                 best = Structure(T, p, gain, s, int(g))

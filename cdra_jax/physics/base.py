@@ -146,10 +146,21 @@ class Effect:
     """A richer term of an effect (e.g. a load-hardening correction of a compliance) that is not
     tested on its own: the diagnosis adds it to a selected effect at the same location only
     where it pays for itself in held-out likelihood (see :mod:`cdra_jax.diagnosis`)."""
+    alone: bool = False
+    """For a refinement: whether it is a complete form of the effect by itself (a settling
+    drift, a power-law stretch), which may then replace the form it refines in a refit; a
+    correction term (a load-hardening term, an overtone) only joins another form."""
 
     def locations(self, arm: Arm) -> tuple[str, ...]:
         """Module or frame names this effect can sit at."""
         raise NotImplementedError
+
+    def joins(self, other: Effect) -> bool:
+        """Whether this form may be refitted together with ``other``, another form of the same
+        effect at the same place (the diagnosis adds forms to a selected one where they pay).
+        Every form by default; a form that describes one mechanism with one hidden constant
+        (a drum's radius, a warm-up's time constant) joins only forms that agree on it."""
+        return True
 
     def parameters(self, arm: Arm, location: str) -> tuple[ParameterSpec, ...]:
         """The physical parameters at ``location``."""

@@ -410,9 +410,10 @@ class CableElasticity(_CableEffect):
       different stiffnesses), holding tensions;
     * ``"quadratic"`` (a refinement, never tested alone): the second-order term ``c2 t_i^2`` of
       a tension-dependent stiffness (negative for a cable that stiffens as it is loaded);
-    * ``"power0.5"``, ``"power0.75"`` (refinements): a power-law stretch
-      ``c t_ref (t_i / t_ref)^p`` (``t_ref`` = :data:`POWER_TENSION_N`), the usual empirical
-      law of a rope or braided cable that stiffens as its strands bed in.
+    * ``"power0.5"``, ``"power0.75"`` (refinements that may also replace the form they refine,
+      :attr:`Effect.alone`): a power-law stretch ``c t_ref (t_i / t_ref)^p`` (``t_ref`` =
+      :data:`POWER_TENSION_N`), the usual empirical law of a rope or braided cable that
+      stiffens as its strands bed in.
     """
 
     name = "cable_elasticity"
@@ -424,6 +425,7 @@ class CableElasticity(_CableEffect):
 
     def __init__(self, form: str = "holding"):
         self._set_form(form)
+        self.alone = form.startswith("power")  # a complete stretch law of its own
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -649,6 +651,10 @@ class PeriodicError(ModuleEffect):
         self.harmonics = _harmonics(harmonics)
         self.variant = "k=" + ",".join(map(str, self.harmonics))
 
+    def joins(self, other):
+        """Harmonics of the joint angle join one another, not a drum's."""
+        return isinstance(other, PeriodicError)
+
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
         unit = "mm" if mod.kind == "prismatic" else "rad"
@@ -718,6 +724,10 @@ class DrumPeriodicError(_CableEffect):
         self.radius_mm = float(radius_mm)
         self.variant = f"drum r={self.radius_mm:g}mm k=" + ",".join(map(str, self.harmonics))
         self.refinement = 1 not in self.harmonics  # overtones alone refine the fundamental
+
+    def joins(self, other):
+        """A drum has one radius: only its own harmonics join."""
+        return isinstance(other, DrumPeriodicError) and other.radius_mm == self.radius_mm
 
     def parameters(self, arm, location):
         _, mod = self.module(arm, location)
@@ -895,7 +905,16 @@ class ThermalDrift(Effect):
             raise ValueError(f"thermal drift time constant must be positive, got {tau_s!r}")
         self.tau_s = None if tau_s is None else float(tau_s)
         self.refinement = tau_s is not None
+        self.alone = True  # a settling drift is a complete drift of its own
         self.variant = "" if tau_s is None else f"warm-up tau={self.tau_s:g}s"
+
+    def joins(self, other):
+        """A warm-up has one time constant: the drift rate joins any, two warm-ups do not."""
+        return not (
+            isinstance(other, ThermalDrift)
+            and None not in (self.tau_s, other.tau_s)
+            and self.tau_s != other.tau_s
+        )
 
     def locations(self, arm):
         return arm.frame_names[:1]
