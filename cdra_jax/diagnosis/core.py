@@ -17,10 +17,11 @@
    log-likelihood gain and the candidates this pose set cannot tell apart are tabulated.
 4. **Select and refit**: the significant candidates whose held-out merit comes close to the
    best one's (:data:`MAX_CONTENDERS`) are each refitted jointly with the frame errors
-   (Levenberg-Marquardt on the whitened residual, :mod:`cdra_jax.calibration.damped`), in chains of their forms (:func:`_chains`,
-   :func:`_fit_effect`); the held-out sum of squares decides between refits, a refit with more
-   parameters paying for them (:func:`_predicts_better`); refits that predict equally well are
-   reported as indistinguishable. 95 % intervals come from the joint covariance; a physically
+   (Levenberg-Marquardt on the whitened residual, :mod:`cdra_jax.calibration.damped`), in
+   chains of their forms (:func:`_chains`, :func:`_fit_effect`); the held-out sum of squares
+   decides between refits, a refit with more parameters paying for them
+   (:func:`_predicts_better`); refits that predict equally well are reported as
+   indistinguishable. 95 % intervals come from the joint covariance; a physically
    implausible estimate is never reported.
 5. **Specific, or unattributed**: a generic probe of no more parameters at another place that
    predicts held-out poses better (:func:`_outdone`), a refit that leaves a misfit it does not

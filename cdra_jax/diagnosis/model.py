@@ -107,7 +107,7 @@ def joint_refit(
     *,
     max_steps: int = 50,
     rtol: float = 1e-10,
-) -> tuple[np.ndarray, bool, int]:
+) -> tuple[np.ndarray, bool, int, tuple[np.ndarray, np.ndarray]]:
     """Levenberg-Marquardt on the whitened residual over the entries ``free`` of ``y``.
 
     The frame errors and the selected candidate's parameters are refitted jointly; the other
