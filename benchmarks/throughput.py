@@ -9,7 +9,9 @@ measurements unless ``--noise`` is given. All problems are generated once with
     (``jax.jit`` with the package's compile options, :mod:`cdra_jax.compilation`;
     ``--xla-defaults`` adds rows compiled with plain ``jax.jit``); ``weighted``: the same with
     the noise model of ``--noise-pos-mm`` / ``--noise-rot-rad`` (whitened residual);
-(b) ``lm``: the same with :func:`cdra_jax.calibrate_lm` (optimistix Levenberg-Marquardt);
+(b) ``lm``: the same with :func:`cdra_jax.calibrate_lm` (Levenberg-Marquardt);
+``lm_optimistix``: :func:`cdra_jax.calibrate_lm_optimistix` (the same minimisation through
+optimistix, the reference);
     ``--singular-values`` adds rows ``*_sv`` with ``singular_values=True`` (the rank and
     singular values of the Jacobian at the solution, a QR and an SVD per trial, as the command
     line asks for them); the solvers' defaults skip them and, for paper and weighted, stop
@@ -58,13 +60,19 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import baselines  # noqa: E402
 
-from cdra_jax import NoiseModel, calibrate_lm, calibrate_paper, default_arm  # noqa: E402
+from cdra_jax import (  # noqa: E402
+    NoiseModel,
+    calibrate_lm,
+    calibrate_lm_optimistix,
+    calibrate_paper,
+    default_arm,
+)
 from cdra_jax.compilation import jit as package_jit  # noqa: E402
 from cdra_jax.parallel import split_over_devices, use_cpu_devices  # noqa: E402
 from cdra_jax.simulation import simulate_trial  # noqa: E402
 
-SOLVERS = ("paper", "weighted", "lm", "numpy", "numpy_vec", "scipy")
-_JAX_SOLVERS = ("paper", "weighted", "lm")
+SOLVERS = ("paper", "weighted", "lm", "lm_optimistix", "numpy", "numpy_vec", "scipy")
+_JAX_SOLVERS = ("paper", "weighted", "lm", "lm_optimistix")
 
 
 def _base(name: str) -> str:
@@ -259,6 +267,7 @@ def run(args) -> dict:
         ("paper", calibrate_paper, 1, {}),
         ("weighted", calibrate_paper, 1, {"noise": weights}),
         ("lm", calibrate_lm, 1, {}),
+        ("lm_optimistix", calibrate_lm_optimistix, 1, {}),
     ]
     if args.singular_values:
         sv = {"singular_values": True}

@@ -34,6 +34,7 @@ from .calibration import RESULTS as RESULTS
 from .calibration import CalibrationSolution as CalibrationSolution
 from .calibration import NoiseModel as NoiseModel
 from .calibration import calibrate_lm as calibrate_lm
+from .calibration import calibrate_lm_optimistix as calibrate_lm_optimistix
 from .calibration import calibrate_paper as calibrate_paper
 from .calibration import calibrate_robust as calibrate_robust
 from .calibration import deviation_metrics as deviation_metrics

@@ -19,6 +19,7 @@ from .model import tool_points as tool_points
 from .model import whitening as whitening
 from .observations import Observations as Observations
 from .observations import make_observations as make_observations
+from .optimistix_lm import calibrate_lm_optimistix as calibrate_lm_optimistix
 from .registration import rigid_registration as rigid_registration
 from .robust import CAUCHY_C as CAUCHY_C
 from .robust import HUBER_C as HUBER_C

@@ -38,8 +38,10 @@ checked against ``jax.jacfwd``), and its normal equations are assembled, as the 
 (:func:`.kernels.lm_normal_equations`): ``J`` itself is never formed. ``J^T J`` in ``u`` is
 ``B^T (J^T J) B``; the damped system is solved by Cholesky.
 
-Not through optimistix. Its least-squares solvers (``optimistix.LevenbergMarquardt``) take
-every step from the Jacobian operator that they build by linearising the residual
+Not through optimistix (:func:`.optimistix_lm.calibrate_lm_optimistix` is that solver, kept
+as the reference this one is tested against). Its least-squares solvers
+(``optimistix.LevenbergMarquardt``) take every step from the Jacobian operator that they
+build by linearising the residual
 (``jax.linearize``); the API has no entry for normal equations computed otherwise. Each step
 there materialises ``J B`` (a product with the identity), forms the normal equations of the
 damped augmented ``(6m + n, n)`` system, and carries its whole state through its branches:

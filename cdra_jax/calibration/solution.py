@@ -45,7 +45,7 @@ class CalibrationSolution(eqx.Module):
             called with ``singular_values=False`` (the rank is then the solve's own: the
             generic rank of :mod:`.nullspace`, or that of its SVD steps).
         cost: final weighted sum of squared residuals (paper form: unweighted) ``(...)``.
-        solver: ``"paper"``, ``"weighted"`` or ``"lm"``.
+        solver: ``"paper"``, ``"weighted"``, ``"lm"`` or ``"lm_optimistix"``.
 
     Derivatives (``jax.grad``, ``jax.jvp``, ...): ``frames``, ``errors`` and ``cost`` carry the
     derivative of the solution with respect to the data through its optimality condition
@@ -145,7 +145,7 @@ def _solve_problem(
     solver_args = args[:3] + more + args[3:]
     sol = make_solver(dtype)(*jax.lax.stop_gradient(solver_args))
     frames, errors, cost = implicit.attach(
-        "lm" if sol.solver == "lm" else "gauss_newton",
+        "lm" if sol.solver in ("lm", "lm_optimistix") else "gauss_newton",
         sol.frames,
         sol.errors,
         sol.cost,
