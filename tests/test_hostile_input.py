@@ -1476,14 +1476,17 @@ def test_sigterm_during_calibrate_leaves_no_temporary_file(base, tmp_path):
     while not _catches_sigterm(proc.pid) and proc.poll() is None:
         assert time.monotonic() < deadline
         time.sleep(0.02)
-    time.sleep(2.0)  # into the compilation and the solver
+    time.sleep(0.5)  # into the compilation and the solver (warm: about 1.5 s in all)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=60)
+    out, err = proc.communicate(timeout=60)
     assert not _temporaries(tmp_path)
-    assert proc.returncode in (cli.EXIT_TERMINATED, cli.EXIT_OK), err
+    # -SIGTERM: the signal came after the command had finished, while the interpreter shut down
+    # (Python restores the default handler there); the result is then whole
+    assert proc.returncode in (cli.EXIT_TERMINATED, cli.EXIT_OK, -signal.SIGTERM), err
     assert "Traceback" not in err
     names = sorted(p.name for p in tmp_path.iterdir())
-    if proc.returncode == cli.EXIT_OK:  # finished first: the whole result
+    if proc.returncode != cli.EXIT_TERMINATED:  # finished first: the whole result
+        assert "wrote r.json" in out + err
         assert names == ["data.csv", "r.json"] and json.loads((tmp_path / "r.json").read_text())
     else:
         # terminated: nothing, or (on a loaded machine, the signal arriving after the atomic
