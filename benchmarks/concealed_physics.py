@@ -243,11 +243,16 @@ def recording_id(tag: str) -> str:
     return "rec_" + hashlib.sha1(tag.encode()).hexdigest()[:10]
 
 
-def _rerun_command(folder: Path, case: Case) -> str:
+def _rerun_command(folder: Path, case: Case, noise_given: bool = True) -> str:
+    """The command that reruns the analyser on one recording as the benchmark ran it."""
+    noise = (
+        f"--noise-pos {case.noise_pos_mm:g} --noise-rot {case.noise_rot_rad:g} "
+        if noise_given
+        else ""
+    )
     return (
         f"cdra-jax diagnose --model {folder}/model.toml "
-        f"--data {folder}/measurements.csv --noise-pos {case.noise_pos_mm:g} "
-        f"--noise-rot {case.noise_rot_rad:g} --out {folder}/rerun.json"
+        f"--data {folder}/measurements.csv {noise}--out {folder}/rerun.json"
     )
 
 
@@ -257,6 +262,7 @@ def run_case(
     out: Path,
     diagnose: Diagnose,
     stability: Callable[[str, str, float, float], dict[str, Any]] | None = None,
+    noise_given: bool = True,
 ) -> dict[str, Any]:
     """Write the recording, hand its files to the analyser, and score the verdict (and, with
     ``stability``, whether the verdict depends on the noise values, :func:`load_stability`)."""
@@ -297,7 +303,7 @@ def run_case(
         "tag": case.tag,
         "kind": case.kind,
         "folder": str(folder),
-        "rerun": _rerun_command(folder, case),
+        "rerun": _rerun_command(folder, case, noise_given),
         "m": case.m,
         "noise_pos_mm": case.noise_pos_mm,
         "noise_rot_rad": case.noise_rot_rad,
@@ -505,7 +511,14 @@ def run(
             rows.append({**_skipped(case), "error": str(e)})
             log(f"[{n + 1}/{len(cases)}] {case.tag}: skipped ({e})")
             continue
-        row = run_case(case, rec, out, diagnose, stability if in_target(case, cfg) else None)
+        row = run_case(
+            case,
+            rec,
+            out,
+            diagnose,
+            stability if in_target(case, cfg) else None,
+            noise_given=bool(cfg.extra.get("noise_given", True)),
+        )
         rows.append(row)
         _log_row(log, n + 1, len(cases), row)
         if (n + 1) % 10 == 0 or n + 1 == len(cases):
@@ -526,7 +539,14 @@ def run(
                 twin_of=case.tag,
             )
             twin_rec = gen.clean_twin(rec)
-            trow = run_case(twin, twin_rec, out, diagnose, stability)
+            trow = run_case(
+                twin,
+                twin_rec,
+                out,
+                diagnose,
+                stability,
+                noise_given=bool(cfg.extra.get("noise_given", True)),
+            )
             trow["own_floor_dp"] = gen.geometric_heldout_dp(twin_rec.scenario, twin_rec.measured)
             rows.append(trow)
             _log_row(log, n + 1, len(cases), trow)

@@ -434,6 +434,11 @@ _EXTENDED = (
 )
 
 
+# The diagnosis tests run on one worker (`--dist loadgroup`, pyproject.toml): each worker that
+# runs one traces and compiles the candidates' features and the extended models again.
+_ONE_WORKER = ("tests/test_diagnosis.py", "tests/test_gravity_moments.py")
+
+
 def pytest_addoption(parser):
     parser.addoption(
         "--extended",
@@ -452,6 +457,9 @@ def _mark_slow(items):
 @pytest.hookimpl(tryfirst=True)  # marks before the -m "not slow" deselection
 def pytest_collection_modifyitems(config, items):
     _mark_slow(items)
+    for item in items:
+        if item.nodeid.startswith(_ONE_WORKER):
+            item.add_marker(pytest.mark.xdist_group("diagnosis"))
     extended = [it for it in items if it.nodeid.startswith(_EXTENDED)]
     for item in extended:
         item.add_marker(pytest.mark.extended)
