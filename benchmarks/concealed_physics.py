@@ -570,6 +570,10 @@ def run(
         | {"folder": r.get("folder"), "rerun": r.get("rerun")}
         for r in rows
         if not r.get("skipped") and not r["correct"]
+    ] + [
+        {"tag": r["tag"], "verdicts": r["stability"]["verdicts"], "folder": r.get("folder")}
+        for r in rows
+        if r.get("stability") and not r["stability"]["stable"]
     ]
     (out / "results.json").write_text(
         json.dumps({"result": result, "rows": rows}, indent=1, default=_jsonable) + "\n"
