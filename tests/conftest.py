@@ -415,7 +415,6 @@ _EXTENDED = (
     "tests/test_diagnosis.py::test_injected_effect_is_found_where_it_is[thermal_drift",
     "tests/test_diagnosis.py::test_injected_effect_is_found_where_it_is[cable_scale",
     "tests/test_diagnosis.py::test_point_data_clean_give_none_and_an_injected_effect_is_found",
-    "tests/test_diagnosis.py::test_the_verdict_does_not_depend_on_the_noise_values[compliance]",
     "tests/test_diagnosis.py::test_clean_recordings_give_none[2]",
     "tests/test_diagnosis.py::test_clean_recordings_give_none[3]",
     "tests/test_gravity_moments.py::test_a_concealed_joint_compliance_is_found_without_masses",

@@ -547,7 +547,9 @@ def _tanh_stretch(q):
 def test_the_verdict_does_not_depend_on_the_noise_values(case):
     """The verdict rests on tests without a noise value: the same effect and place with the
     true noise and with every noise value scaled by 0.7 or 1.3; a stated noise that the
-    residuals contradict is said to be so, without changing the verdict."""
+    residuals contradict is said to be so, without changing the verdict (a named effect's refit
+    that contradicts the stated noise by more than NOISE_CONTRADICTION: the diagnosis runs
+    again with the noise estimated from that refit)."""
     from cdra_jax import NoiseModel
 
     if case == "clean":
@@ -564,6 +566,13 @@ def test_the_verdict_does_not_depend_on_the_noise_values(case):
         if case == "clean":
             text = "noisier than stated" if k == 0.7 else "consistent with the residuals"
             assert text in d.report, (k, d.report)
+        if case == "compliance":
+            ratio = d.noise.get("stated_contradicted_by")
+            if k != 1.3:  # 1/1.3 is near the threshold: either way
+                assert (ratio is not None) == (k == 0.7), (k, ratio)
+            assert ratio is None or abs(ratio * k - 1.0) < 0.2, (k, ratio)  # the true noise
+            said = "The noise values given are contradicted" in d.report
+            assert said == (ratio is not None), (k, d.report)
 
 
 def test_a_shape_the_vocabulary_lacks_is_unattributed_where_it_lives_without_noise_values():

@@ -132,6 +132,13 @@ def render_report(d: Diagnosis, best: Candidate | None) -> str:
         )
         + ").",
     ]
+    ratio = d.noise.get("stated_contradicted_by")
+    if ratio is not None:
+        lines.append(
+            f"The noise values given are contradicted: the residual of the refit with the named "
+            f"effect is {ratio:.2g} times them, so the diagnosis ran again with the noise "
+            "estimated from that residual, as without noise values."
+        )
     parts = []
     st = t.get("structure") or {}
     if st.get("p_value") is not None:
