@@ -80,13 +80,16 @@ _RSS_TEST_LIMIT_BYTES = 1_500_000_000
 
 
 @pytest.fixture(autouse=True)
-def _free_compiled_programs_when_memory_is_high():
+def _free_compiled_programs_when_memory_is_high(request):
     """Within a module, drop the compiled programs after a test once the worker holds more than
     :data:`_RSS_TEST_LIMIT_BYTES`: modules of random arms or imported arms compile programs that
     no later test reuses (one such module otherwise reached 3.4 GB), and the 3 GB budget of the
-    suite is per run, not per module."""
+    suite is per run, not per module. Not within a module marked ``keep_programs``, whose tests
+    share their programs (the diagnosis': the candidates' features of one arm, 12 s to compile
+    and 5 s to trace, about 400 MB for the whole module)."""
     yield
-    _drop_compiled_programs_above(_RSS_TEST_LIMIT_BYTES, _RSS_REGROWTH_BYTES)
+    if request.node.get_closest_marker("keep_programs") is None:
+        _drop_compiled_programs_above(_RSS_TEST_LIMIT_BYTES, _RSS_REGROWTH_BYTES)
 
 
 @pytest.fixture(scope="session")

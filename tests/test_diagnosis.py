@@ -17,6 +17,8 @@ from cdra_jax.diagnosis import diagnose, diagnose_files, stats
 from cdra_jax.io import Measurements, save_measurements
 from cdra_jax.physics import corrected_tool_pose
 
+pytestmark = pytest.mark.keep_programs  # the tests share the candidates' compiled features
+
 CONTRACT_KEYS = {
     "mismatch",
     "p_value",
