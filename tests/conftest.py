@@ -175,39 +175,9 @@ _LONG_FIRST = (
 
 # The quick loop, `python -m pytest -q -n 2 -m "not slow"` (under a minute on two cores), skips
 # the tests marked slow: those marked in their files, and these, marked here because each costs
-# a second or more of CPU (mostly compiling solvers; measured per test on the full suite). Every
-# module keeps at least one cheap test in the quick loop. CI runs them all.
+# a second or more of CPU (mostly compiling solvers; measured per test on the full suite). Most
+# modules keep a cheap test in the quick loop. The default run (CI) runs them all.
 _SLOW: dict[str, tuple[str, ...]] = {
-    "tests/test_gravity_moments.py": (
-        "test_lumped_moments_are_the_identifiable_combinations_of_the_statics",
-        "test_bending_with_masses_is_a_combination_of_the_lumped_columns",
-    ),
-    "tests/test_sweep_processes.py": (
-        "test_two_local_processes_give_the_one_process_table",
-        "test_a_process_that_never_connects_ends_the_wait",
-    ),
-    "tests/test_nullspace.py": (
-        "test_null_basis_is_the_svd_null_space_on_random_arms",
-        "test_null_space_solve_is_the_pseudo_inverse_step",
-        "test_null_space_basis_whitens_the_identifiable_subspace",
-        "test_null_space_solve_flags_data_rank_deficiency",
-    ),
-    "tests/test_model_effects.py": (
-        "test_calibrate_refines_the_effects_with_the_frames",
-        "test_calibrate_with_effects_from_points",
-        "test_calibrate_with_effects_refuses_rough_markers_and_robust_losses",
-        "test_sweep_refuses_and_plan_poses_notes_the_effects",
-        "test_a_load_dependent_effect_is_refined_in_the_gauge",
-        "test_validate_with_the_effects_reaches_the_noise_floor",
-        "test_simulate_writes_the_effects_and_their_columns",
-    ),
-    "tests/test_markers.py": (
-        "test_cli_simulate_calibrate_model_out_validate_on_markers",
-        "test_the_guard_fires_when_an_unweighted_fit_is_worse_than_nominal",
-        "test_plan_poses_for_a_model_measured_by_markers",
-        "test_a_gross_point_error_is_flagged_and_down_weighted",
-        "test_diagnose_calibrates_rough_markers_before_it_looks_for_missing_physics",
-    ),
     "tests/test_benchmark_baselines.py": (
         "test_baseline_calibrations_agree_with_the_paper_solver",
     ),
@@ -218,6 +188,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_noise_free_recovery_cdra",
         "test_residual_gradients",
         "test_underdetermined_gives_the_minimum_norm_answer",
+        "test_bad_shapes_raise",
     ),
     "tests/test_calibration_kernels.py": (
         "test_linearise_is_the_stacked_system",
@@ -231,6 +202,8 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_simulate_cables_then_calibrate",
         "test_simulate_then_calibrate_recovers_the_preset_errors",
         "test_simulate_writes_csv_with_preset_errors_in_comments",
+        "test_explicit_model_file_gives_the_same_simulation_as_the_default",
+        "test_outputs_are_not_overwritten_without_force",
     ),
     "tests/test_cli_robust.py": (
         "test_least_squares_result_has_unit_weights_and_flags",
@@ -238,17 +211,22 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_cauchy_flags_the_corrupted_poses_in_summary_and_json",
         "test_reject_outliers_refits_without_the_flagged_poses",
         "test_degenerate_pose_sets_warn_and_give_the_min_norm_answer",
+        "test_failure_modes_give_one_error_line_and_exit_1",
     ),
     "tests/test_compilation.py": ("test_options_change_no_result_of_the_solvers",),
     "tests/test_concealed_generator.py": (
+        "test_twin_shares_poses_errors_and_noise",
         "test_every_effect_at_zero_size_is_the_geometric_model",
         "test_size_calibration_hits_the_requested_unabsorbed_rms",
+        "test_columns_are_the_same_for_every_effect",
+        "test_harness_scores_a_perfect_and_a_blind_stand_in",
+        "test_out_of_library_effects_are_not_absorbed",
     ),
     "tests/test_degenerate.py": (
         "test_identical_poses_keep_six_parameters_and_name_the_other_eighteen",
+        "test_elbow_never_moved_loses_six_more_directions",
     ),
     "tests/test_diagnosis.py": (
-        # every test that runs a diagnosis (the statistics and the cheap checks stay)
         "test_clean_recordings_give_none",
         "test_injected_effect_is_found_where_it_is",
         "test_a_richer_form_is_refitted_and_reaches_the_noise_floor",
@@ -267,6 +245,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_the_verdict_does_not_depend_on_the_noise_values",
         "test_a_shape_the_vocabulary_lacks_is_unattributed_where_it_lives_without_noise_values",
         "test_bad_inputs_raise_clear_errors",
+        "test_a_misfit_that_changes_with_time_is_placed_at_the_frame_whose_time_probe_explains_it",
     ),
     "tests/test_float32_and_noise_checks.py": (
         "test_explicit_tolerances_still_apply_in_float32",
@@ -274,6 +253,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_float32_solves_stay_float32_and_converge_with_the_default_tolerances",
         "test_float64_default_tolerance_is_the_old_one_bitwise",
         "test_robust_rejection_of_a_failed_trial_outside_jit_reports_nonfinite",
+        "test_per_pose_noise_of_the_wrong_shape_raises_naming_the_field",
     ),
     "tests/test_fuzz.py": (
         "test_pose_selection_picks_distinct_poses_or_names_the_bad_state",
@@ -281,13 +261,22 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_solvers_never_report_success_with_nan",
         "test_sweep_rows_are_finite_when_converged",
     ),
+    "tests/test_gravity_moments.py": (
+        "test_lumped_moments_are_the_identifiable_combinations_of_the_statics",
+        "test_bending_with_masses_is_a_combination_of_the_lumped_columns",
+        "test_a_lumped_effect_round_trips_through_the_model_file",
+    ),
     "tests/test_hostile_input.py": (
+        "test_out_symlink_is_written_through",
+        "test_a_noise_std_of_1e_300_is_refused",
         "test_force_onto_a_folder_is_refused",
         "test_text_in_a_number_cell_names_file_line_and_column",
         "test_bad_result_and_frame_error_files_name_the_file",
         "test_force_onto_a_fifo_is_refused_and_the_fifo_stays",
         "test_malformed_model_files_name_the_key",
         "test_random_cell_values_are_read_or_named",
+        "test_force_onto_dev_null_is_refused_and_it_stays_a_device",
+        "test_max_iterations_beyond_the_machine_integers_is_refused",
     ),
     "tests/test_implicit_derivatives.py": (
         "test_gradients_under_vmap_and_at_an_exact_fit",
@@ -299,17 +288,44 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_cable_length_columns_give_the_module_state",
         "test_bad_cable_lengths_name_row_and_column",
     ),
+    "tests/test_io_results.py": ("test_structure_and_iteration_indexing",),
     "tests/test_lie.py": (
         "test_log_jacobians",
         "test_rotation_angle_gradient_is_finite_at_identity",
     ),
-    "tests/test_modules_cable_data.py": ("test_states_from_exact_and_noisy_lengths",),
+    "tests/test_markers.py": (
+        "test_cli_simulate_calibrate_model_out_validate_on_markers",
+        "test_the_guard_fires_when_an_unweighted_fit_is_worse_than_nominal",
+        "test_plan_poses_for_a_model_measured_by_markers",
+        "test_a_gross_point_error_is_flagged_and_down_weighted",
+        "test_diagnose_calibrates_rough_markers_before_it_looks_for_missing_physics",
+        "test_markers_with_occlusions_recover_the_arm_from_a_far_device_frame",
+        "test_noise_scales_are_estimated_and_clean_data_are_not_flagged",
+        "test_tool_positions_only_recover_what_points_can_see",
+    ),
+    "tests/test_model_effects.py": (
+        "test_calibrate_refines_the_effects_with_the_frames",
+        "test_calibrate_with_effects_from_points",
+        "test_calibrate_with_effects_refuses_rough_markers_and_robust_losses",
+        "test_sweep_refuses_and_plan_poses_notes_the_effects",
+        "test_a_load_dependent_effect_is_refined_in_the_gauge",
+        "test_validate_with_the_effects_reaches_the_noise_floor",
+        "test_simulate_writes_the_effects_and_their_columns",
+        "test_effects_need_their_columns",
+        "test_model_tool_pose_without_effects_is_the_chain",
+    ),
+    "tests/test_modules_cable_data.py": (
+        "test_wrong_column_count_and_impossible_rows_are_all_diagnosed",
+        "test_states_from_exact_and_noisy_lengths",
+        "test_bad_cable_data_names_the_row_and_the_column",
+    ),
     "tests/test_modules_cables.py": (
         "test_forward_kinematics_from_noisy_lengths_reports_the_residual",
         "test_initial_guess_and_offsets",
         "test_forward_kinematics_round_trip_over_the_workspace",
         "test_forward_kinematics_under_vmap_equals_a_loop",
         "test_prismatic_module_round_trip",
+        "test_inconsistent_and_bad_lengths_get_result_codes",
     ),
     "tests/test_modules_self_calibration.py": (
         "test_recovery_with_length_noise_is_within_its_predicted_uncertainty",
@@ -330,6 +346,13 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_sampler_raises_when_too_few_states_are_feasible",
         "test_sampler_returns_only_feasible_states_within_the_limits",
     ),
+    "tests/test_nullspace.py": (
+        "test_null_basis_is_the_svd_null_space_on_random_arms",
+        "test_null_space_solve_is_the_pseudo_inverse_step",
+        "test_null_space_basis_whitens_the_identifiable_subspace",
+        "test_null_space_solve_flags_data_rank_deficiency",
+    ),
+    "tests/test_optimistix_lm.py": ("test_optimistix_lm_reaches_the_fast_solvers_minimum",),
     "tests/test_physics.py": (
         "test_refinements_are_richer_forms_of_a_tested_effect",
         "test_vocabulary_is_the_design_table",
@@ -338,6 +361,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_bending_force_part_is_the_textbook_cantilever",
         "test_features_shapes_and_jacobians_finite",
         "test_single_candidate_pure_function_matches_the_stacked_features",
+        "test_skip_reasons_name_what_is_missing",
     ),
     "tests/test_plausibility.py": (
         "test_no_typo_warning_on_clean_simulated_files",
@@ -362,6 +386,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_rounding_bound_holds_for_random_roundings",
         "test_table_one_base_and_tool_exact",
         "test_table_one_null_coordinates_are_in_the_printed_basis",
+        "test_table_one_papers_values_fit_to_their_rounding",
     ),
     "tests/test_robust.py": (
         "test_huber_solution_solves_the_reweighted_normal_equations",
@@ -372,6 +397,12 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_least_squares_with_too_optimistic_noise_flags_most_poses_and_says_why",
         "test_reject_outliers_keeps_the_robust_fit_when_too_few_poses_remain",
         "test_reject_outliers_refits_least_squares_on_the_unflagged_poses",
+        "test_errors_are_against_the_nominal_frames_and_histories_count_solves",
+        "test_uncertainty_of_a_robust_fit_uses_its_final_weights",
+    ),
+    "tests/test_sweep_processes.py": (
+        "test_two_local_processes_give_the_one_process_table",
+        "test_a_process_that_never_connects_ends_the_wait",
     ),
     "tests/test_sweeps.py": (
         "test_chunking_does_not_change_trials",
@@ -387,6 +418,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_pose_covariance_matches_autodiff",
         "test_predicted_accuracy_gradients",
         "test_prediction_unbounded_where_the_poses_leave_directions_unidentified",
+        "test_cramer_rao_bound",
     ),
     "tests/test_workflows.py": (
         "test_model_out_and_compare",
