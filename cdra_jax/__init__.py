@@ -34,7 +34,6 @@ from .calibration import RESULTS as RESULTS
 from .calibration import CalibrationSolution as CalibrationSolution
 from .calibration import NoiseModel as NoiseModel
 from .calibration import calibrate_lm as calibrate_lm
-from .calibration import calibrate_lm_optimistix as calibrate_lm_optimistix
 from .calibration import calibrate_paper as calibrate_paper
 from .calibration import calibrate_robust as calibrate_robust
 from .calibration import deviation_metrics as deviation_metrics
@@ -53,11 +52,21 @@ from .pose_selection import select_poses as select_poses
 from .sweeps import run_sweep as run_sweep
 from .uncertainty import analyze_uncertainty as analyze_uncertainty
 
-if TYPE_CHECKING:  # imported on first use: the figures, the paper's reproduction, workflows
+if TYPE_CHECKING:  # imported on first use: the figures, the paper's reproduction, workflows,
+    # the optimistix reference solver (optimistix takes a tenth of a second to import)
     from . import plots as plots
     from . import reproduction as reproduction
     from . import workflows as workflows
+    from .calibration import calibrate_lm_optimistix as calibrate_lm_optimistix
 
-__getattr__, __dir__ = lazy_names(__name__, {"plots": "", "reproduction": "", "workflows": ""})
+__getattr__, __dir__ = lazy_names(
+    __name__,
+    {
+        "plots": "",
+        "reproduction": "",
+        "workflows": "",
+        "calibrate_lm_optimistix": "calibration",
+    },
+)
 
 __version__ = importlib.metadata.version("cdra_jax")

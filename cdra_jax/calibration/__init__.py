@@ -1,5 +1,8 @@
 """Calibration model (Eqs. 7-9), solvers (Eqs. 10-19) and deviation metrics (Eqs. 20-21)."""
 
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_names
 from .auto import AutoSolution as AutoSolution
 from .auto import calibrate_auto as calibrate_auto
 from .gauge import GaugeFix as GaugeFix
@@ -19,7 +22,6 @@ from .model import tool_points as tool_points
 from .model import whitening as whitening
 from .observations import Observations as Observations
 from .observations import make_observations as make_observations
-from .optimistix_lm import calibrate_lm_optimistix as calibrate_lm_optimistix
 from .registration import rigid_registration as rigid_registration
 from .robust import CAUCHY_C as CAUCHY_C
 from .robust import HUBER_C as HUBER_C
@@ -37,3 +39,8 @@ from .solution import result_messages as result_messages
 from .solution import result_names as result_names
 from .validation import MIN_POSES as MIN_POSES
 from .validation import check_problem as check_problem
+
+if TYPE_CHECKING:  # imported on first use (optimistix takes a tenth of a second to import)
+    from .optimistix_lm import calibrate_lm_optimistix as calibrate_lm_optimistix
+
+__getattr__, __dir__ = lazy_names(__name__, {"calibrate_lm_optimistix": "optimistix_lm"})
