@@ -103,18 +103,21 @@ def _optimistix_solver(*, max_iterations, rtol, atol, rcond, weighted, singular_
         noise = NoiseModel(*noise_std) if weighted else None
         P = jnp.moveaxis(poses[..., :3, :], 0, -1)  # (K, 3, 4, m)
         T = kernels.pose_stack(measured)  # (3, 4, m)
-        basis = _identifiable_basis(kernels.linearise(frames0, P, T, noise), rcond)
+        nominal = kernels.linearise(frames0, P, T, noise)  # Eq. 9 and Eqs. 20-21 at F_0
+        basis = _identifiable_basis(nominal, rcond)
 
         def frames_at(u):
             return lie.se3_exp((basis @ u).reshape(frames0.shape[0], 6)) @ frames0
 
+        def residual_and_metrics(frames):
+            """The (whitened) residual ``(6, m)`` of Eq. 7 and Eqs. 20-21 at ``frames``."""
+            tool, _ = kernels.chain(frames, P)
+            r, dp, dR = kernels.residual_and_metrics(T, tool)
+            return (r if noise is None else kernels.whiten(r, T, noise)), dp, dR
+
         @jax.custom_jvp
         def residual(u):
-            tool, _ = kernels.chain(frames_at(u), P)
-            r, _, _ = kernels.residual_and_metrics(T, tool)
-            if noise is not None:
-                r = kernels.whiten(r, T, noise)
-            return r.reshape(-1)
+            return residual_and_metrics(frames_at(u))[0].reshape(-1)
 
         @residual.defjvp
         def _jvp(primals, tangents):
@@ -127,12 +130,8 @@ def _optimistix_solver(*, max_iterations, rtol, atol, rcond, weighted, singular_
             lambda u, _: residual(u), solver, u0, max_steps=max_iterations, throw=False
         )
         frames = frames_at(found.value)
-        tool, _ = kernels.chain(frames, P)
-        r, dp, dR = kernels.residual_and_metrics(T, tool)
-        if noise is not None:
-            r = kernels.whiten(r, T, noise)
-        tool0, _ = kernels.chain(frames0, P)
-        _, dp0, dR0 = kernels.residual_and_metrics(T, tool0)
+        r, dp, dR = residual_and_metrics(frames)
+        dp0, dR0 = nominal.delta_p, nominal.delta_R
         k = jnp.asarray(found.stats["num_steps"], jnp.int32)
         nan = jnp.full((max_iterations + 1,), jnp.nan, dtype)
         finite = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))
