@@ -349,7 +349,6 @@ _SLOW: dict[str, tuple[str, ...]] = {
     "tests/test_nullspace.py": (
         "test_null_basis_is_the_svd_null_space_on_random_arms",
         "test_null_space_solve_is_the_pseudo_inverse_step",
-        "test_null_space_basis_whitens_the_identifiable_subspace",
         "test_null_space_solve_flags_data_rank_deficiency",
     ),
     "tests/test_optimistix_lm.py": ("test_optimistix_lm_reaches_the_fast_solvers_minimum",),

@@ -23,7 +23,6 @@ from cdra_jax.calibration import (
 from cdra_jax.calibration.linear import (
     RESOLVED_PIVOT,
     STRUCTURAL_TOL,
-    null_space_basis,
     null_space_solve,
 )
 from cdra_jax.calibration.nullspace import (
@@ -134,26 +133,6 @@ def test_null_space_solve_is_the_pseudo_inverse_step(seed):
     )
     if Z.shape[1]:
         assert np.abs(np.asarray(Z).T @ np.asarray(x)).max() < 1e-12 * np.abs(np.asarray(x)).max()
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_null_space_basis_whitens_the_identifiable_subspace(seed):
-    """LM's basis: ``D B`` orthonormal on the first ``n - k`` columns, which span the SVD's
-    identifiable subspace; the last ``k`` columns are zero."""
-    arm = random_arm(200 + seed)
-    q, T = _data(arm, seed, 25)
-    _, D = stacked_system(arm, q, T, NoiseModel(0.05, 1e-3))
-    D = np.asarray(D)
-    k = structural_nullity(arm)
-    r = arm.n_params - k
-    B, smallest, structural = null_space_basis(D.T @ D, structural_null_space(arm))
-    B = np.asarray(B)
-    assert float(smallest) >= RESOLVED_PIVOT and float(structural) <= STRUCTURAL_TOL
-    assert np.all(B[:, r:] == 0)
-    np.testing.assert_allclose((D @ B[:, :r]).T @ (D @ B[:, :r]), np.eye(r), atol=1e-9)
-    V = np.linalg.svd(D)[2][:r].T
-    Q, _ = np.linalg.qr(B[:, :r])
-    np.testing.assert_allclose(Q @ Q.T, V @ V.T, atol=1e-9)
 
 
 def test_null_space_solve_flags_data_rank_deficiency(cdra):

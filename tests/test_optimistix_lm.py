@@ -23,7 +23,10 @@ def _both(arm, q, T):
 
 def test_optimistix_lm_reaches_the_fast_solvers_minimum(cdra):
     """Two noise-free and two noisy trials of the paper's problem (15 poses), whitened: both
-    solvers converge, to the same frames (noise-free: to rounding) and the same cost."""
+    solvers converge, to the same identifiable errors (base and tool; noise-free: to rounding)
+    and the same cost. (The unidentifiable components of the frames follow each solver's
+    steps: the fast solver's are orthogonal to the null space at every iterate, the
+    reference's stay in the identifiable basis of the nominal model.)"""
     keys = jax.random.split(jax.random.PRNGKey(7), 4)
     noise = [None, None, NOISE, NOISE]
     trials = [
@@ -36,9 +39,10 @@ def test_optimistix_lm_reaches_the_fast_solvers_minimum(cdra):
     np.testing.assert_array_equal(np.asarray(ref.result._value), 0)
     np.testing.assert_array_equal(np.asarray(fast.result._value), 0)
     np.testing.assert_array_equal(ref.rank, fast.rank)
-    gap = np.abs(np.asarray(ref.frames - fast.frames))
-    assert gap[:2, :, :3, 3].max() < 1e-9  # mm, noise-free
-    assert gap[2:, :, :3, 3].max() < 1e-5  # mm, noisy: the minimum is flat to this
+    ends = [0, -1]
+    gap = np.abs(np.asarray(ref.errors - fast.errors))[:, ends]
+    assert gap[:2].max() < 1e-9  # mm and rad, noise-free
+    assert gap[2:].max() < 1e-5  # noisy: the minimum is flat to this
     np.testing.assert_allclose(ref.cost[2:], fast.cost[2:], rtol=1e-10)
     assert np.all(ref.cost[:2] < 1e-16)
     k = np.asarray(ref.iterations)

@@ -395,7 +395,7 @@ def normal_equations(
 
 
 def lm_normal_equations(
-    X: Array,
+    X: Array | None,
     after: Array,
     r: Array,
     measured: Array,
@@ -414,8 +414,13 @@ def lm_normal_equations(
     rotation parameters. The constant right factor ``diag(J_l)`` (6x6 per frame) goes into
     ``B``. The test suite checks ``N`` and ``g`` against ``J`` of :func:`residual_jacobian`.
 
+    ``X = None`` drops that factor: the normal equations for a perturbation on the left of the
+    frames at which ``after`` and ``r`` were evaluated, ``F_j -> exp(hat(B_j u)) F_j``
+    (Levenberg-Marquardt's multiplicative step), rather than of the twists ``X`` of
+    ``exp(hat(X_j)) F_j``.
+
     Args:
-        X: ``(6 (K+1),)`` error twists (``frames = exp(hat(X_j)) F_j``).
+        X: ``(6 (K+1),)`` error twists (``frames = exp(hat(X_j)) F_j``), or ``None``.
         after: ``(K, 3, 4, m)`` world poses before the fixed frames at ``X`` (:func:`chain`).
         r: ``(6, m)`` Eq. 7's residual at ``X`` (unwhitened).
         measured: ``(3, 4, m)`` measured tool poses. noise: the noise model, or ``None``.
@@ -439,13 +444,16 @@ def lm_normal_equations(
     V = jnp.concatenate([aR, _rows_times(a, H) + _rows_times(b, R)], axis=1)
     W = aR if noise is None else _rows_times(c, R)
     N, g = _split_gram(V, W, rw)
+    if X is None and basis is None:
+        return N, -g, rw
     # diag(J_l(X_j)) (6x6 per frame) and the basis: B' = diag(J_l) B; the sign of J on g.
-    Jl, Ql, _ = se3_left_jacobian_blocks(X.reshape(k1, 6).T)  # (3, 3, K+1)
-    top = jnp.concatenate([Jl, Ql], axis=1)
-    bottom = jnp.concatenate([jnp.zeros_like(Jl), Jl], axis=1)
-    L = jnp.moveaxis(jnp.concatenate([top, bottom]), 2, 0)  # (K+1, 6, 6)
-    B = jnp.eye(n, dtype=dtype) if basis is None else basis
-    Bp = jnp.einsum("iac,icu->iau", L, B.reshape(k1, 6, -1)).reshape(n, -1)
+    Bp = jnp.eye(n, dtype=dtype) if basis is None else basis
+    if X is not None:
+        Jl, Ql, _ = se3_left_jacobian_blocks(X.reshape(k1, 6).T)  # (3, 3, K+1)
+        top = jnp.concatenate([Jl, Ql], axis=1)
+        bottom = jnp.concatenate([jnp.zeros_like(Jl), Jl], axis=1)
+        L = jnp.moveaxis(jnp.concatenate([top, bottom]), 2, 0)  # (K+1, 6, 6)
+        Bp = jnp.einsum("iac,icu->iau", L, Bp.reshape(k1, 6, -1)).reshape(n, -1)
     return Bp.T @ (N @ Bp), -(Bp.T @ g), rw
 
 

@@ -75,7 +75,7 @@ def normal_cutoff(dtype, rcond: float | None = None) -> float:
 
 RESOLVED_PIVOT = 1e-9
 """Smallest kept pivot (relative to ``max(diag(N))``) for which the fast step is trusted
-(the paper solver's steps, LM's identifiable basis; the same policy for both solvers, with
+(the paper solver's steps, LM's steps; the same policy for both solvers, with
 :func:`normal_equations_apply`).
 
 The normal equations lose ``cond(D)^2 eps`` relative accuracy: with a pivot of ``1e-9`` the
@@ -179,25 +179,6 @@ def min_norm_solve_normal(
     return L @ z, rank, smallest
 
 
-def whitening_basis_normal(N: ArrayLike, cutoff: float | None = None) -> tuple[Array, Array, Array]:
-    """A basis ``B (n, n)`` of the range of ``N = D^T D`` with ``D B`` orthonormal, without an SVD.
-
-    With ``L`` the factor of :func:`pivoted_cholesky` (``N ~= L L^T``, ``range(L) =
-    range(N)``), ``B = L (L^T L)^-1``: then ``B^T N B = I`` on the kept columns, so ``D B`` has
-    orthonormal columns, and the dropped columns of ``B`` are zero. It spans the same subspace
-    as ``V S^+`` of the SVD ``D = U S V^T`` (up to an orthogonal change of coordinates), to the
-    accuracy of the normal equations (:func:`min_norm_solve_normal`).
-
-    Returns:
-        ``(B (n, n), rank, smallest_pivot)`` as :func:`min_norm_solve_normal`.
-    """
-    N = jnp.asarray(N)
-    if cutoff is None:
-        cutoff = normal_cutoff(N.dtype)
-    L, C, rank, smallest = _range_factor(N, cutoff)
-    return jax.scipy.linalg.cho_solve((C, True), L.T).T, rank, smallest
-
-
 def _range_factor(N: Array, cutoff: float) -> tuple[Array, Array, Array, Array]:
     """``(L, C, rank, smallest_pivot)``: :func:`pivoted_cholesky` of ``N``, the Cholesky factor
     ``C`` of ``L^T L`` (the dropped columns given a unit diagonal), and the smallest kept pivot
@@ -238,7 +219,12 @@ factorisation would drop too."""
 
 
 def null_space_solve(
-    N: ArrayLike, g: ArrayLike, Z: ArrayLike, *, check: bool | Array = True
+    N: ArrayLike,
+    g: ArrayLike,
+    Z: ArrayLike,
+    *,
+    check: bool | Array = True,
+    damping: ArrayLike | None = None,
 ) -> tuple[Array, Array, Array]:
     """``N^+ g`` for ``g`` in the range of ``N`` when the null space of ``N`` is known.
 
@@ -277,10 +263,16 @@ def null_space_solve(
     products or dot products, which XLA fuses, rather than as matrix products (each a call of
     its own, costly for such small operands under ``vmap``).
 
+    ``damping`` ``M (n, n)`` (positive semi-definite) solves ``(N + M) x = g`` instead, the
+    component along ``Z`` projected out as above (the damped Levenberg-Marquardt step of
+    :mod:`.levenberg_marquardt`, ``M = lambda N_0``); the tests are then those of the damped
+    system, so that a caller who needs them checks without ``damping``.
+
     Args:
         N: ``(n, n)`` ``D~^T D~``. g: ``(n,)`` ``D~^T Y~``. Z: ``(n, k)`` orthonormal basis of
             the null space of ``N`` (:mod:`.nullspace`); ``k = 0`` for none.
         check: compute the two tests: a bool, or a boolean scalar (a ``lax.cond``).
+        damping: ``M (n, n)``, or ``None``.
 
     Returns:
         ``(x (n,), smallest, structural)``: the step, the estimate of ``lambda_min(A_s)`` (NaN
@@ -296,6 +288,8 @@ def null_space_solve(
     A = N * s[:, None] * s[None, :]
     Zs = orthonormalise(Z * d[:, None]) if k else Z
     A_aug = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k)) if k else A
+    if damping is not None:
+        A_aug = A_aug + jnp.asarray(damping, N.dtype) * s[:, None] * s[None, :]
     L = jnp.linalg.cholesky(A_aug)
 
     def solve(b):
@@ -327,40 +321,3 @@ def _probe(n: int) -> np.ndarray:
     """The start of the inverse iteration of :func:`null_space_solve`: fixed, with components
     of similar size in every direction (not a structured vector that a pose set could miss)."""
     return np.cos(1.0 + 2.3 * np.arange(n))
-
-
-def null_space_basis(N: ArrayLike, Z: ArrayLike) -> tuple[Array, Array, Array]:
-    """:func:`whitening_basis_normal` when the null space of ``N`` is known: ``B (n, n)`` with
-    ``B^T N B = I`` on its first ``n - k`` columns, which span ``null(N)^perp``, and zero
-    columns after them; without a pivoted factorisation.
-
-    ``W (n, n - k)``, an orthonormal basis of the complement of ``Z`` (the trailing columns of
-    the complete QR of ``Z``), reduces ``N`` to the positive definite ``N_W = W^T N W``; with its
-    Jacobi scaling ``S`` (as in :func:`null_space_solve`) and the Cholesky factor
-    ``S N_W S = L L^T``, ``B = W S L^-T``. The tests of the result are those of
-    :func:`null_space_solve`: ``1 / |L^-1|_F^2`` (to be at least :data:`RESOLVED_PIVOT`) and
-    ``max |N_s Z_s|`` (at most :data:`STRUCTURAL_TOL`).
-
-    Returns:
-        ``(B (n, n), smallest, structural)``.
-    """
-    N = jnp.asarray(N)
-    Z = jnp.asarray(Z, N.dtype)
-    n, k = N.shape[-1], Z.shape[-1]
-    d = jnp.sqrt(jnp.diagonal(N))
-    structural = jnp.zeros((), N.dtype)
-    if k:
-        Q, _ = jnp.linalg.qr(Z, mode="complete")
-        W = Q[:, k:]
-        Zs = orthonormalise(Z * d[:, None])
-        structural = jnp.max(jnp.abs((N / d[:, None] / d[None, :]) @ Zs))
-        NW = W.T @ N @ W
-    else:
-        W = jnp.eye(n, dtype=N.dtype)
-        NW = N
-    s = 1.0 / jnp.sqrt(jnp.diagonal(NW))
-    L = jnp.linalg.cholesky(NW * s[:, None] * s[None, :])
-    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(n - k, dtype=N.dtype), lower=True)
-    B = (W * s[None, :]) @ Li.T
-    B = jnp.concatenate([B, jnp.zeros((n, k), N.dtype)], axis=1)
-    return B, 1.0 / jnp.sum(Li * Li), structural
