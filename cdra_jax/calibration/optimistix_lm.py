@@ -25,13 +25,12 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jax import Array
 from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm
 from . import kernels
-from .linear import default_rcond
+from .levenberg_marquardt import _identifiable_basis
 from .model import NoiseModel
 from .solution import CalibrationSolution, _finished_solution, _solve_problem, dtype_default
 
@@ -156,29 +155,3 @@ def _optimistix_solver(*, max_iterations, rtol, atol, rcond, weighted, singular_
         )
 
     return run
-
-
-def _identifiable_basis(lin: kernels.Linearisation, rcond: float | None) -> Array:
-    """``(n, r)`` map ``X = B u`` onto the identifiable subspace at the nominal model.
-
-    ``B = V S^+`` from the thin SVD of the (whitened) stacked Jacobian ``D~ = U S V^T`` (Eq. 9,
-    held transposed by ``lin``, so that ``V`` is the left factor of ``D~^T``): the columns are
-    the right singular vectors divided by their singular values, and zero for singular values
-    below ``rcond * s_max``, so that ``D~ B`` has orthonormal (or zero) columns.
-    ``r = min(6 m, n)``.
-
-    ``V`` and ``S`` are taken from the SVD of the ``(n, n)`` triangular factor ``R`` of the
-    QR decomposition ``D~ = Q R`` (Householder, backward stable): ``R = U_R S V^T``, so that
-    ``D~ = (Q U_R) S V^T``. That costs about 0.7 of the SVD of the ``(6m, n)`` matrix itself
-    (15 CDRA poses: 118 against 161 us per trial, batched), as for the reported singular values
-    (:func:`.solution._singular_values`).
-    """
-    A = lin.DT.T
-    if A.shape[-2] > A.shape[-1]:
-        A = jnp.linalg.qr(A, mode="r")
-    _, s, Vt = jnp.linalg.svd(A, full_matrices=False)
-    V = jnp.swapaxes(Vt, -1, -2)
-    rcond = default_rcond(lin.DT.dtype) if rcond is None else rcond
-    keep = s > rcond * s[..., :1]
-    scale = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
-    return V * scale
