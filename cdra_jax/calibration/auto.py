@@ -295,9 +295,11 @@ def calibrate_auto(
     null_space = Vt[rank:]
 
     n_units = int(pose_mask.sum()) * 2 + int(seen.sum())
-    import scipy.stats  # here: importing the package does not load it
+    # chdtri: the chi-square quantile (isf), from scipy.special, which the package imports
+    # here and not at import; scipy.stats would cost every calibration half a second.
+    from scipy.special import chdtri
 
-    threshold = float(math.sqrt(scipy.stats.chi2.isf(FAMILY_ALPHA / max(n_units, 1), 3)))
+    threshold = float(math.sqrt(chdtri(3, FAMILY_ALPHA / max(n_units, 1))))
     # Units beyond the outlier bound are left out of the scale estimates (a gross error would
     # otherwise inflate its kind's scale and hide itself).
     keep_pos, keep_rot, keep_pts = pose_mask.copy(), pose_mask.copy(), seen.copy()
