@@ -243,3 +243,29 @@ def test_backlash_and_drift_follow_their_auxiliaries():
     settled = 1.0 - np.exp(-np.asarray(b.aux["time_s"]) / 600.0)
     np.testing.assert_allclose(w.frame_deflection[:, 0, 4, 4], settled, rtol=1e-12)
     assert Features.zeros(b.arm, 3, 2).state.shape == (3, b.arm.dof, 2)
+
+
+def test_only_periodic_series_name_a_coordinate_for_the_shape_check():
+    """The harmonic forms (of a joint angle, of a drum angle) are series in a coordinate of
+    their module: each parameter's feature follows one axis (a state entry, a cable's payout),
+    which the diagnosis' shape check splits at its median. Forms whose shape is fixed by their
+    physics name none."""
+    b = base()
+    arm, q = b.arm, b.q
+    for c in b.everything:
+        found = c.coordinate(arm, q)
+        if c.name != "periodic_error":
+            assert found is None, c.label
+            continue
+        assert found is not None, c.label
+        z, owner = np.asarray(found[0]), np.asarray(found[1])
+        assert z.shape[0] == q.shape[0] and np.all(np.isfinite(z))
+        assert owner.shape == (len(c.parameters(arm)),)
+        assert owner.min() == 0 and owner.max() == z.shape[1] - 1
+    drum = find("periodic_error", "shoulder", "drum r=10mm k=1")
+    z, owner = drum.coordinate(arm, q)
+    mod = arm.modules[0]
+    qs = arm.split_state(q)[0]
+    paid = cable_lengths(mod, qs) - cable_lengths(mod, jnp.zeros_like(qs))
+    np.testing.assert_allclose(np.asarray(z), np.asarray(paid))
+    assert list(owner) == [j for j in range(mod.n_cables) for _ in range(2)]

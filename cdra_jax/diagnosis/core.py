@@ -86,6 +86,10 @@ LOCATE_MIN = 0.5
 candidate removes at least this fraction of the excess and no generic probe at another place
 explains the residual more significantly; otherwise the structure test and the probes place it."""
 
+SHAPE_SPLIT = 0.5
+"""The shape check of a series form (:func:`_shape_check`) compares its amplitudes on the poses
+below and above this quantile (the median) of each of its axes' coordinate."""
+
 REFINE_GAIN_PER_PARAM = 2.0
 """A further form of the selected effect at the selected place (another variant, or a
 refinement such as a load-hardening term) joins the refit only when it raises the held-out
@@ -896,6 +900,9 @@ def _judge(
         }
         tested = chosen[(best.name, best.location)]
         rival = _outdone(tested, evals[tested]["gain"], s.probes, probe_rows, lin, ho0, alpha)
+        shape = _shape_check(fit, lin, s.live, floor2)
+        if shape is not None:
+            refit_info["shape_check"] = shape
         implausible = _implausible(parameters)
         if implausible:
             # never report an effect whose estimate is physically impossible (a negative
@@ -915,6 +922,19 @@ def _judge(
                     f"({rival['n_params']} parameters, no more than its {rival['against']}) "
                     f"predicts held-out poses better (log-likelihood gain "
                     f"{rival['heldout_gain']:.1f} against {rival['candidate_gain']:.1f})"
+                ),
+            }
+            effect_name = "unattributed"
+        elif shape is not None and shape["p_value"] < alpha:
+            # a series in a coordinate (harmonics) that fits a shape of another kind over part
+            # of a period: its amplitudes differ between the two halves of the range
+            refit_info["rejected"] = {
+                "candidate": best.label,
+                "reason": (
+                    "its shape is not the same over the range of the angle it is periodic in: "
+                    "its amplitudes differ between the poses below and above the median angle "
+                    f"(F = {shape['F']:.2f}, p = {shape['p_value']:.2g}), as those of a "
+                    "series that fits another shape over part of one period do"
                 ),
             }
             effect_name = "unattributed"
@@ -1627,6 +1647,47 @@ def _outdone(
                 "against": f"{k} of {tested.label}",
             }
     return best
+
+
+def _shape_check(
+    fit: _Fit, lin: _Linearised, live: Sequence[Candidate], floor2: float
+) -> dict | None:
+    """Whether a refitted series form (:meth:`cdra_jax.physics.Effect.coordinate`: harmonics of
+    a joint or drum angle) has the same amplitudes over the whole range of its coordinate:
+    ``None`` where no form of ``fit`` is a series, else its F test (``F``, ``p_value``,
+    ``df``).
+
+    The alternative lets every amplitude take another value on the poses above the
+    :data:`SHAPE_SPLIT` quantile of its axis (each feature column times that indicator,
+    linearised at the refit). The null model is the refit with every other form at the place
+    that may join it (:func:`_joins`: the overtones at the same drum radius, the other
+    harmonics of the joint angle), so that a true periodic error whose refit lacks an overtone
+    is not mistaken for another shape. A periodic error has the same amplitudes throughout;
+    a saturating or monotone shape that a few harmonics fit over less than one period does
+    not (the fitted harmonic follows the steep part on one side and the flat part on the
+    other). No noise value is needed (an F ratio)."""
+    series = [c for c in fit.forms if c.coordinate(lin.arm, lin.problem.q) is not None]
+    if not series:
+        return None
+    n_geo = lin.D.shape[1]
+    lead = fit.lead
+    place = [c for c in live if (c.name, c.location) == (lead.name, lead.location)]
+    null = list(fit.forms) + [c for c in place if _joins(c, fit.forms)]
+    U = stats.orthonormal_basis(
+        fit.J[:, np.concatenate([np.arange(n_geo), n_geo + _columns(null, lin.cols)])]
+    )
+    r = fit.r - U @ (U.T @ fit.r)
+    blocks = []
+    for c in series:
+        found = c.coordinate(lin.arm, lin.problem.q)
+        assert found is not None
+        z, owner = np.asarray(found[0], float), np.asarray(found[1])
+        above = (z > np.quantile(z, SHAPE_SPLIT, axis=0)).astype(float)
+        Jc = fit.J[:, n_geo + _columns([c], lin.cols)]
+        blocks.append(Jc * above[lin.rows.row][:, owner])
+    proj = stats.project(np.hstack(blocks), U)
+    Fv, p, df1, _ = stats.f_test(r, proj.basis, r.size - U.shape[1], floor2)
+    return {"F": _num(Fv), "p_value": float(p), "df": int(df1)}
 
 
 def _locate_unattributed(

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -174,6 +175,16 @@ class Effect:
         """Per-pose features ``(m, ..., p)`` at states ``q (m, dof)`` (see :class:`Features`)."""
         raise NotImplementedError
 
+    def coordinate(self, arm: Arm, q: Array, location: str) -> tuple[Array, np.ndarray] | None:
+        """For a form that is a series in a coordinate of its module (harmonics of a joint
+        angle or of a drum angle): ``(z (m, n), owner (p,))``, the coordinate each pose has on
+        each of ``n`` axes (a state entry, a cable's payout) and the axis whose function each
+        parameter's feature is. Such a series fits a smooth shape that is not of its kind
+        over a part of one period; the diagnosis checks that its amplitudes are the same over
+        both halves of each axis' range (:func:`cdra_jax.diagnosis.core._shape_check`).
+        ``None`` (the default): a form whose shape is fixed by its physics."""
+        return None
+
     def describe(self, location: str, values: Mapping[str, tuple[float, float, float]]) -> str:
         """Plain words for a fitted effect; ``values``: name -> (value, low95, high95)."""
         return f"{self.name} at {location}"
@@ -208,6 +219,10 @@ class Candidate:
 
     def missing(self, arm: Arm, aux_names: frozenset[str] | Sequence[str]) -> str | None:
         return self.effect.missing(arm, self.location, frozenset(aux_names))
+
+    def coordinate(self, arm: Arm, q: ArrayLike) -> tuple[Array, np.ndarray] | None:
+        """:meth:`Effect.coordinate` at this location."""
+        return self.effect.coordinate(arm, jnp.asarray(q), self.location)
 
     def features(self, arm: Arm, q: ArrayLike, aux: Aux) -> Features:
         """The effect's features, with every column at the rounding level of its largest

@@ -38,6 +38,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from ..arm import Arm, Module
@@ -686,6 +687,12 @@ class PeriodicError(ModuleEffect):
         step = jnp.stack(cols, axis=-1)
         return _module_step_features(arm, q, i, step, spherical_as_twist=False)
 
+    def coordinate(self, arm, q, location):
+        """Each state entry's angle; parameters ``(entry, harmonic, sin|cos)``."""
+        i, mod = self.module(arm, location)
+        n = 2 * len(self.harmonics)
+        return arm.split_state(q)[i], np.arange(mod.dof * n) // n
+
     def describe(self, location, values):
         amp: dict[str, float] = {}
         for n, (v, _, _) in values.items():
@@ -757,6 +764,14 @@ class DrumPeriodicError(_CableEffect):
         e = e.reshape(q.shape[0], n, n * h * 2)
         step = _lstsq_columns(length_jacobian(mod, qi), e)
         return _module_step_features(arm, q, i, step)
+
+    def coordinate(self, arm, q, location):
+        """Each cable's payout from home (mm); parameters ``(cable, harmonic, sin|cos)``."""
+        i, mod = self.module(arm, location)
+        qi = arm.split_state(q)[i]
+        n = 2 * len(self.harmonics)
+        payout = cable_lengths(mod, qi) - cable_lengths(mod, jnp.zeros_like(qi))
+        return payout, np.arange(mod.n_cables * n) // n
 
     def describe(self, location, values):
         amp: dict[str, float] = {}
