@@ -46,7 +46,8 @@ def study(arm, m: int, trials: int, seed: int, lm_retry: list[int]) -> dict:
     keys = jax.random.split(jax.random.PRNGKey(seed), trials)
     q, T, *_ = jit(jax.vmap(lambda k: simulate_trial(k, arm, m)))(keys)
     t0 = time.perf_counter()
-    paper = jax.device_get(_solve(calibrate_paper, arm, q, T))
+    # the singular values of D~ at the solution (not computed by default)
+    paper = jax.device_get(_solve(calibrate_paper, arm, q, T, singular_values=True))
     lm = jax.device_get(_solve(calibrate_lm, arm, q, T))
     names_p, names_l = result_names(paper.result), result_names(lm.result)
     bad = np.nonzero((names_p != "successful") | (names_l != "successful"))[0]
