@@ -173,7 +173,7 @@ _LONG_FIRST = (
 )
 
 
-# The quick loop, `python -m pytest -q -n 2 -m "not slow"` (under a minute on two cores), skips
+# The quick loop, `python -m pytest -q -n 2 -m "not slow"` (about a minute on two cores), skips
 # the tests marked slow: those marked in their files, and these, marked here because each costs
 # a second or more of CPU (mostly compiling solvers; measured per test on the full suite). Most
 # modules keep a cheap test in the quick loop. The default run (CI) runs them all.
@@ -225,6 +225,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
     "tests/test_degenerate.py": (
         "test_identical_poses_keep_six_parameters_and_name_the_other_eighteen",
         "test_elbow_never_moved_loses_six_more_directions",
+        "test_fewer_poses_than_the_lower_bound_stop_or_go_min_norm",
     ),
     "tests/test_diagnosis.py": (
         "test_clean_recordings_give_none",
@@ -361,6 +362,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_features_shapes_and_jacobians_finite",
         "test_single_candidate_pure_function_matches_the_stacked_features",
         "test_skip_reasons_name_what_is_missing",
+        "test_only_periodic_series_name_a_coordinate_for_the_shape_check",
     ),
     "tests/test_plausibility.py": (
         "test_no_typo_warning_on_clean_simulated_files",

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -62,6 +63,14 @@ from .loads import (
 
 PAYLOAD = "payload_kg"
 TIME = "time_s"
+
+
+@eqx.filter_jit
+def _payout(mod: Module, qi: Array) -> Array:
+    """Each cable's payout from home, ``(m, n_cables)`` mm: its length at the module states
+    ``qi (m, dof)`` less its length at the home state (compiled: the diagnosis asks for it per
+    candidate outside its compiled programs)."""
+    return cable_lengths(mod, qi) - cable_lengths(mod, jnp.zeros_like(qi))
 
 
 def _module_index(arm: Arm, name: str) -> int:
@@ -558,9 +567,7 @@ class CableScale(_CableEffect):
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         qi = arm.split_state(q)[i]
-        dl = cable_lengths(mod, qi)  # (m, n) mm
-        if self.form != "absolute":
-            dl = dl - cable_lengths(mod, jnp.zeros_like(qi))
+        dl = cable_lengths(mod, qi) if self.form == "absolute" else _payout(mod, qi)  # (m, n) mm
         return self._length_step_features(arm, q, i, dl)  # per_cable: each winch its drum
 
     def describe(self, location, values):
@@ -754,7 +761,7 @@ class DrumPeriodicError(_CableEffect):
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         qi = arm.split_state(q)[i]
-        phi = (cable_lengths(mod, qi) - cable_lengths(mod, jnp.zeros_like(qi))) / self.radius_mm
+        phi = _payout(mod, qi) / self.radius_mm
         k = jnp.asarray(self.harmonics, q.dtype)
         kphi = phi[..., None] * k  # (m, n, h)
         waves = jnp.stack([jnp.sin(kphi), jnp.cos(kphi)], axis=-1)  # (m, n, h, 2)
@@ -770,8 +777,7 @@ class DrumPeriodicError(_CableEffect):
         i, mod = self.module(arm, location)
         qi = arm.split_state(q)[i]
         n = 2 * len(self.harmonics)
-        payout = cable_lengths(mod, qi) - cable_lengths(mod, jnp.zeros_like(qi))
-        return payout, np.arange(mod.n_cables * n) // n
+        return _payout(mod, qi), np.arange(mod.n_cables * n) // n
 
     def describe(self, location, values):
         amp: dict[str, float] = {}
