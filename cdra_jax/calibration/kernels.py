@@ -395,40 +395,26 @@ def normal_equations(
 
 
 def lm_normal_equations(
-    X: Array | None,
-    after: Array,
-    r: Array,
-    measured: Array,
-    noise: NoiseModel | None = None,
-    basis: Array | None = None,
+    after: Array, r: Array, measured: Array, noise: NoiseModel | None = None
 ) -> tuple[Array, Array, Array]:
-    """``(B^T J^T J B (n, n), B^T J^T r~ (n,), r~ (6, m))``: the normal equations of LM's
-    residual (:func:`residual_jacobian`) at ``X`` in the coordinates ``u`` of ``X = B u``
-    (``basis`` ``B (n, n)``; ``None``: the identity), without ``J`` itself.
+    """``(J^T J (n, n), J^T r~ (n,), r~ (6, m))``: the normal equations of LM's residual for a
+    step ``dX`` on the left of the frames at which ``after`` and ``r`` were evaluated, ``F_j ->
+    exp(hat(dX_j)) F_j``, without ``J`` itself.
 
-    ``J = -G J_r^-1(r) D diag(J_l(X_j))``: per pose the rows of ``D`` (Eq. 8) are moved by
-    ``M = G J_r^-1(r) = [[a, b], [0, c]]`` (3x3 blocks: ``J_r^-1`` and the whitening ``G``
-    are both block upper triangular), which keeps the rotation rows of a block free of its
-    translation parameters, so that ``(M D)^T (M D)`` splits as in :func:`normal_equations`:
-    translation rows ``[a R, a H + b R]`` of every parameter and rotation rows ``c R`` of the
-    rotation parameters. The constant right factor ``diag(J_l)`` (6x6 per frame) goes into
-    ``B``. The test suite checks ``N`` and ``g`` against ``J`` of :func:`residual_jacobian`.
-
-    ``X = None`` drops that factor: the normal equations for a perturbation on the left of the
-    frames at which ``after`` and ``r`` were evaluated, ``F_j -> exp(hat(B_j u)) F_j``
-    (Levenberg-Marquardt's multiplicative step), rather than of the twists ``X`` of
-    ``exp(hat(X_j)) F_j``.
+    ``J = -G J_r^-1(r) D`` (:func:`residual_jacobian` at ``X = 0`` about those frames): per
+    pose the rows of ``D`` (Eq. 8) are moved by ``M = G J_r^-1(r) = [[a, b], [0, c]]`` (3x3
+    blocks: ``J_r^-1`` and the whitening ``G`` are both block upper triangular), which keeps the
+    rotation rows of a block free of its translation parameters, so that ``(M D)^T (M D)``
+    splits as in :func:`normal_equations`: translation rows ``[a R, a H + b R]`` of every
+    parameter and rotation rows ``c R`` of the rotation parameters. The test suite checks ``N``
+    and ``g`` against ``J`` of :func:`residual_jacobian`.
 
     Args:
-        X: ``(6 (K+1),)`` error twists (``frames = exp(hat(X_j)) F_j``), or ``None``.
-        after: ``(K, 3, 4, m)`` world poses before the fixed frames at ``X`` (:func:`chain`).
-        r: ``(6, m)`` Eq. 7's residual at ``X`` (unwhitened).
+        after: ``(K, 3, 4, m)`` world poses before the fixed frames (:func:`chain`).
+        r: ``(6, m)`` Eq. 7's residual there (unwhitened).
         measured: ``(3, 4, m)`` measured tool poses. noise: the noise model, or ``None``.
-        basis: ``(n, n)``, or ``None``.
     """
     dtype = after.dtype
-    k1 = after.shape[0] + 1
-    n = 6 * k1
     _, Q, Ji = se3_left_jacobian_blocks(-r)  # J_r^-1(r) = J_l^-1(-r) = [[Ji, -Ji Q Ji], [0, Ji]]
     a, b, c = Ji, -_matmul3(_matmul3(Ji, Q), Ji), Ji
     rw = r
@@ -444,17 +430,7 @@ def lm_normal_equations(
     V = jnp.concatenate([aR, _rows_times(a, H) + _rows_times(b, R)], axis=1)
     W = aR if noise is None else _rows_times(c, R)
     N, g = _split_gram(V, W, rw)
-    if X is None and basis is None:
-        return N, -g, rw
-    # diag(J_l(X_j)) (6x6 per frame) and the basis: B' = diag(J_l) B; the sign of J on g.
-    Bp = jnp.eye(n, dtype=dtype) if basis is None else basis
-    if X is not None:
-        Jl, Ql, _ = se3_left_jacobian_blocks(X.reshape(k1, 6).T)  # (3, 3, K+1)
-        top = jnp.concatenate([Jl, Ql], axis=1)
-        bottom = jnp.concatenate([jnp.zeros_like(Jl), Jl], axis=1)
-        L = jnp.moveaxis(jnp.concatenate([top, bottom]), 2, 0)  # (K+1, 6, 6)
-        Bp = jnp.einsum("iac,icu->iau", L, Bp.reshape(k1, 6, -1)).reshape(n, -1)
-    return Bp.T @ (N @ Bp), -(Bp.T @ g), rw
+    return N, -g, rw  # the sign of J on g
 
 
 def _rows_times(a: Array, M: Array) -> Array:

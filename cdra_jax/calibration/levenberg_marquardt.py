@@ -312,7 +312,7 @@ def _lm_solver(
         frames_t = kernels.left_multiply(lie.se3_exp(dX.reshape(frames.shape[0], 6)), frames)
         tool, after = kernels.chain(frames_t, P)
         r, dp, dR = kernels.residual_and_metrics(T, tool)
-        N_t, g_t, Yw = kernels.lm_normal_equations(None, after, r, T, noise)
+        N_t, g_t, Yw = kernels.lm_normal_equations(after, r, T, noise)
         bases = jax.lax.cond(first, lambda: nominal(mode, N_t, after, T, noise), lambda: bases)
         cost_t = jnp.sum(Yw * Yw)
         rho = (0.5 * (cost - cost_t)) / predicted
