@@ -44,7 +44,6 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from .. import lie
 from ..arm import Arm
 from . import kernels
 from .batching import chunked_loop
@@ -300,7 +299,7 @@ def _paper_solver(
         stepping = running(state)
         step = jnp.linalg.norm(X)
         finite = jnp.isfinite(step)
-        moved = kernels.left_multiply(lie.se3_exp(X.reshape(frames.shape[0], 6)), frames)
+        moved = kernels.step_frames(X, frames)
         converged = step < tol
         if predictive_stop:
             # What the steps after this one would still move, predicted from the last two:

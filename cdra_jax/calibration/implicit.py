@@ -82,7 +82,7 @@ def _condition(kind: str, d: Array, frames: Array, poses: Array, measured: Array
     T = kernels.pose_stack(measured)  # (3, 4, m)
 
     if kind == "gauss_newton":
-        moved = lie.se3_exp(d.reshape(frames.shape[0], 6)) @ frames
+        moved = kernels.step_frames(d, frames)
         lin = kernels.linearise(moved, P, T, noise)
         return lin.DT @ lin.Y, jnp.sum(lin.Y * lin.Y)
 

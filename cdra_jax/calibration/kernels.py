@@ -88,6 +88,12 @@ def left_multiply(E: Array, F: Array) -> Array:
     return jnp.concatenate([top, jnp.broadcast_to(F[..., 3:, :], top.shape[:-2] + (1, 4))], -2)
 
 
+def step_frames(X: Array, frames: Array) -> Array:
+    """The frames after a step, ``exp(hat(X_j)) F_j`` (Eqs. 11-14): ``X (6 (K+1),)`` (Eq. 8's
+    order), ``frames (K+1, 4, 4)``, products as :func:`left_multiply`."""
+    return left_multiply(lie.se3_exp(X.reshape(frames.shape[0], 6)), frames)
+
+
 def chain(frames: Array, poses: Array) -> tuple[Array, Array]:
     """Eq. 1 on pose stacks: :func:`cdra_jax.arm.chain` in the pose-last layout.
 

@@ -81,7 +81,6 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import lie
 from ..arm import Arm
 from . import kernels
 from .batching import chunked_loop
@@ -91,6 +90,7 @@ from .linear import (
     default_rcond,
     normal_equations_apply,
     null_space_solve,
+    off_null_space,
 )
 from .model import NoiseModel
 from .nullspace import null_basis, null_generators
@@ -289,7 +289,7 @@ def _lm_solver(
             A = basis.T @ ((N + damping * N0) @ basis) + jnp.diag(jnp.where(used, 0.0, 1.0))
             du = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), basis.T @ g)
             x = -basis @ du
-            return x - Z @ (Z.T @ x), resolved
+            return off_null_space(x, Z), resolved
 
         return jax.lax.cond(svd_steps(mode, T, n), in_basis, fast)
 
@@ -309,7 +309,7 @@ def _lm_solver(
         trying = running(state) & ~first
         # The model at the proposed step (the first pass: the nominal model), its normal
         # equations, and whether the step is taken.
-        frames_t = kernels.left_multiply(lie.se3_exp(dX.reshape(frames.shape[0], 6)), frames)
+        frames_t = kernels.step_frames(dX, frames)
         tool, after = kernels.chain(frames_t, P)
         r, dp, dR = kernels.residual_and_metrics(T, tool)
         N_t, g_t, Yw = kernels.lm_normal_equations(after, r, T, noise)

@@ -297,7 +297,7 @@ def null_space_solve(
 
     x = s * solve(s * g)
     if k:
-        x = x - sum(Z[:, c] * jnp.dot(Z[:, c], x) for c in range(k))
+        x = off_null_space(x, Z)
 
     def tests():
         y = solve(jnp.asarray(_probe(n), N.dtype))
@@ -315,6 +315,12 @@ def null_space_solve(
     else:  # a traced scalar: a branch (real where it is unbatched, as the paper solver's)
         smallest, structural = jax.lax.cond(check, tests, skipped)
     return x, smallest, structural
+
+
+def off_null_space(x: Array, Z: Array) -> Array:
+    """``x`` less its components along the orthonormal columns of ``Z (n, k)``, ``x - Z Z^T x``
+    (as sums of ``k`` products, which XLA fuses: see :func:`null_space_solve`)."""
+    return x - sum(Z[:, c] * jnp.dot(Z[:, c], x) for c in range(Z.shape[-1]))
 
 
 def _probe(n: int) -> np.ndarray:

@@ -27,7 +27,6 @@ import lineax as lx
 import optimistix as optx
 from jax.typing import ArrayLike
 
-from .. import lie
 from ..arm import Arm
 from . import kernels
 from .levenberg_marquardt import _identifiable_basis
@@ -107,7 +106,7 @@ def _optimistix_solver(*, max_iterations, rtol, atol, rcond, weighted, singular_
         basis = _identifiable_basis(nominal, rcond)
 
         def frames_at(u):
-            return lie.se3_exp((basis @ u).reshape(frames0.shape[0], 6)) @ frames0
+            return kernels.step_frames(basis @ u, frames0)
 
         def residual_and_metrics(frames):
             """The (whitened) residual ``(6, m)`` of Eq. 7 and Eqs. 20-21 at ``frames``."""
