@@ -13,6 +13,10 @@ The joint state of the whole arm is one flat vector ``q`` of length ``arm.dof``:
 states concatenated in chain order, spherical modules contributing their rotation vector
 ``(rx, ry, rz)`` (rad), revolute modules an angle (rad) and prismatic modules a displacement
 (mm). ``arm.state_names`` gives the measurement-file column of each entry.
+
+:func:`module_poses`, :func:`chain` and :func:`forward_kinematics` run as one compiled program
+per arm structure and shape when called on concrete arrays (as the maps of :mod:`cdra_jax.lie`),
+and are traced inline inside ``jit``, ``vmap`` or ``grad``.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from . import lie
+from .compilation import compiled_when_eager
 
 ModuleKind = Literal["spherical", "revolute", "prismatic"]
 MODULE_KINDS: tuple[str, ...] = ("spherical", "revolute", "prismatic")
@@ -437,6 +442,7 @@ class Arm(eqx.Module):
         return eqx.tree_at(lambda a: a.frames, self, frames)
 
 
+@compiled_when_eager
 def module_poses(arm: Arm, q: ArrayLike) -> Array:
     """Module platform poses ``(..., K, 4, 4)`` from the flat state ``q (..., dof)``."""
     return jnp.stack(
@@ -444,6 +450,7 @@ def module_poses(arm: Arm, q: ArrayLike) -> Array:
     )
 
 
+@compiled_when_eager
 def chain(frames: ArrayLike, poses: ArrayLike) -> tuple[Array, Array]:
     """Product of Eq. 1 from fixed frames and module poses.
 
@@ -467,6 +474,7 @@ def chain(frames: ArrayLike, poses: ArrayLike) -> tuple[Array, Array]:
     return T, jnp.stack(after, axis=-3)
 
 
+@compiled_when_eager
 def forward_kinematics(arm: Arm, q: ArrayLike) -> tuple[Array, Array]:
     """Tool pose and the pose after each module for states ``q (..., dof)`` (Eqs. 1 and 4).
 

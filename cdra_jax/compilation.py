@@ -28,9 +28,10 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import jax
+import numpy as np
 
 PREFERRED_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 """XLA debug options the package compiles with (see the module docstring)."""
@@ -158,6 +159,38 @@ def filter_jit(fun: Callable, *, fast_compile: bool = False, **jit_kwargs) -> An
         return eqx.filter_jit(fun, compiler_options={**options, **own}, **jit_kwargs)
 
     return _LazyJit(make, fun, fast_compile)
+
+
+_F = TypeVar("_F", bound=Callable[..., object])
+
+_ARRAY_LIKE = (int, float, complex, list, tuple, np.ndarray, np.generic)
+
+
+def compiled_when_eager(fn: _F) -> _F:
+    """``fn`` run as one compiled program (one per shape, dtype and static part) when it is
+    called on concrete values, and traced inline, as written, when any argument is a tracer
+    (inside ``jit``, ``vmap``, ``grad``).
+
+    For the small maps that are called both ways (:mod:`cdra_jax.lie`, the chain of
+    :mod:`cdra_jax.arm`): called eagerly, they would otherwise dispatch their 20-100 operations
+    one by one, each compiled at its first use for every new shape (loading a model, forward
+    kinematics of a few poses, a report); one program per shape is cheaper to compile and to
+    run. Traced, nothing changes (no nested program in the caller's). The values are those of
+    the traced function. Array-likes (numbers, lists, numpy arrays) are made arrays first;
+    other arguments are pytrees (:func:`equinox.filter_jit`: their arrays traced, everything
+    else static).
+    """
+    import equinox as eqx
+
+    compiled = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args):
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+            return fn(*args)
+        return compiled(*(jax.numpy.asarray(a) if isinstance(a, _ARRAY_LIKE) else a for a in args))
+
+    return cast(_F, call)
 
 
 @functools.cache

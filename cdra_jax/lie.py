@@ -11,6 +11,9 @@ Conventions (used everywhere in :mod:`cdra_jax`):
   ``T exp(hat(xi)) T^-1 = exp(hat(Ad_T xi))`` (Eq. 6).
 
 Every function broadcasts over leading batch dimensions, jits, vmaps and differentiates.
+Called on concrete arrays, each public map runs as one compiled program per shape and dtype
+(:func:`cdra_jax.compilation.compiled_when_eager`); inside ``jit``, ``vmap`` or ``grad`` it is
+traced inline.
 Near zero rotation the closed forms are replaced by Taylor series behind the "double where"
 shim, so that values *and* gradients stay finite. The SO(3) logarithm goes through a
 quaternion (Shepperd's method), which stays accurate near a rotation of pi where the paper's
@@ -24,6 +27,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
+
+from .compilation import compiled_when_eager as _compiled_when_eager
 
 # Below this squared angle (rad^2) the closed forms switch to their Taylor series. At 1e-2 the
 # series truncation error (first omitted term ~ phi^10 / 10!) and the cancellation error of the
@@ -41,6 +46,7 @@ def _shaped(x: ArrayLike, trailing: tuple[int, ...], fn: str, arg: str) -> Array
     return x
 
 
+@_compiled_when_eager
 def hat3(w: ArrayLike) -> Array:
     """Skew-symmetric matrix of a 3-vector: ``(..., 3) -> (..., 3, 3)``, ``hat(w) x = w x x``."""
     w = _shaped(w, (3,), "hat3", "w")
@@ -56,6 +62,7 @@ def hat3(w: ArrayLike) -> Array:
     )
 
 
+@_compiled_when_eager
 def vee3(W: ArrayLike) -> Array:
     """Inverse of :func:`hat3` (uses the skew part): ``(..., 3, 3) -> (..., 3)``."""
     W = _shaped(W, (3, 3), "vee3", "W")
@@ -65,6 +72,7 @@ def vee3(W: ArrayLike) -> Array:
     )
 
 
+@_compiled_when_eager
 def hat(xi: ArrayLike) -> Array:
     """se(3) matrix of a twist ``(v, w)`` (Eq. 23): ``(..., 6) -> (..., 4, 4)``."""
     xi = _shaped(xi, (6,), "hat", "xi")
@@ -73,6 +81,7 @@ def hat(xi: ArrayLike) -> Array:
     return jnp.concatenate([top, bottom], axis=-2)
 
 
+@_compiled_when_eager
 def vee(X: ArrayLike) -> Array:
     """Twist ``(v, w)`` of an se(3) matrix: ``(..., 4, 4) -> (..., 6)``."""
     X = _shaped(X, (4, 4), "vee", "X")
@@ -98,6 +107,7 @@ def _angle_coefficients(theta_sq: Array) -> tuple[Array, Array, Array]:
     return a, b, cc
 
 
+@_compiled_when_eager
 def so3_exp(w: ArrayLike) -> Array:
     """Rotation matrix of a rotation vector (Rodrigues, Eq. 26): ``(..., 3) -> (..., 3, 3)``."""
     w = _shaped(w, (3,), "so3_exp", "w")
@@ -108,6 +118,7 @@ def so3_exp(w: ArrayLike) -> Array:
     return eye + a[..., None, None] * W + b[..., None, None] * W2
 
 
+@_compiled_when_eager
 def so3_left_jacobian(w: ArrayLike) -> Array:
     """The matrix ``A`` of Eq. 26 (left Jacobian of SO(3)): ``(..., 3) -> (..., 3, 3)``."""
     w = _shaped(w, (3,), "so3_left_jacobian", "w")
@@ -117,6 +128,7 @@ def so3_left_jacobian(w: ArrayLike) -> Array:
     return eye + b[..., None, None] * W + c[..., None, None] * (W @ W)
 
 
+@_compiled_when_eager
 def rotation_to_quaternion(R: ArrayLike) -> Array:
     """Unit quaternion ``(w, x, y, z)`` of a rotation matrix (Shepperd / Day): ``(..., 4)``.
 
@@ -143,6 +155,7 @@ def rotation_to_quaternion(R: ArrayLike) -> Array:
     return q * (0.5 / jnp.sqrt(t))[..., None]
 
 
+@_compiled_when_eager
 def quaternion_to_rotation(q: ArrayLike) -> Array:
     """Rotation matrix of a unit quaternion ``(w, x, y, z)``: ``(..., 4) -> (..., 3, 3)``."""
     q = _shaped(q, (4,), "quaternion_to_rotation", "q")
@@ -157,6 +170,7 @@ def quaternion_to_rotation(q: ArrayLike) -> Array:
     )
 
 
+@_compiled_when_eager
 def quaternion_log(q: ArrayLike) -> Array:
     """Rotation vector of a unit quaternion ``(w, x, y, z)``: ``(..., 4) -> (..., 3)``.
 
@@ -175,6 +189,7 @@ def quaternion_log(q: ArrayLike) -> Array:
     return jnp.where(small, taylor, exact)[..., None] * v
 
 
+@_compiled_when_eager
 def so3_log(R: ArrayLike) -> Array:
     """Rotation vector of a rotation matrix, norm in ``[0, pi]``: ``(..., 3, 3) -> (..., 3)``.
 
@@ -184,6 +199,7 @@ def so3_log(R: ArrayLike) -> Array:
     return quaternion_log(rotation_to_quaternion(R))
 
 
+@_compiled_when_eager
 def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
     """The matrix ``A*`` of Eq. 27, ``A^{-1}``: ``(..., 3) -> (..., 3, 3)``; finite up to pi."""
     w = _shaped(w, (3,), "so3_left_jacobian_inverse", "w")
@@ -200,6 +216,7 @@ def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
     return eye - 0.5 * W + c[..., None, None] * (W @ W)
 
 
+@_compiled_when_eager
 def make_pose(R: ArrayLike, p: ArrayLike) -> Array:
     """Homogeneous matrix from ``R (..., 3, 3)`` and ``p (..., 3)`` (Eq. 22): ``(..., 4, 4)``."""
     R = _shaped(R, (3, 3), "make_pose", "R")
@@ -221,6 +238,7 @@ def translation(T: ArrayLike) -> Array:
     return _shaped(T, (4, 4), "translation", "T")[..., :3, 3]
 
 
+@_compiled_when_eager
 def se3_exp(xi: ArrayLike) -> Array:
     """Pose of a twist ``(v, w)`` (Eq. 26): ``(..., 6) -> (..., 4, 4)``."""
     xi = _shaped(xi, (6,), "se3_exp", "xi")
@@ -234,6 +252,7 @@ def se3_exp(xi: ArrayLike) -> Array:
     return make_pose(R, jnp.einsum("...ij,...j->...i", A, v))
 
 
+@_compiled_when_eager
 def se3_log(T: ArrayLike) -> Array:
     """Twist ``(v, w)`` of a pose (Eq. 27, made robust near pi): ``(..., 4, 4) -> (..., 6)``."""
     T = _shaped(T, (4, 4), "se3_log", "T")
@@ -242,6 +261,7 @@ def se3_log(T: ArrayLike) -> Array:
     return jnp.concatenate([v, w], axis=-1)
 
 
+@_compiled_when_eager
 def inverse(T: ArrayLike) -> Array:
     """Inverse pose ``[[R^T, -R^T p], [0, 1]]``: ``(..., 4, 4) -> (..., 4, 4)``."""
     T = _shaped(T, (4, 4), "inverse", "T")
@@ -249,6 +269,7 @@ def inverse(T: ArrayLike) -> Array:
     return make_pose(Rt, -jnp.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
 
 
+@_compiled_when_eager
 def compose(*poses: ArrayLike) -> Array:
     """Product of poses, left to right (broadcasting): ``T_ab T_bc -> T_ac``."""
     if not poses:
@@ -259,6 +280,7 @@ def compose(*poses: ArrayLike) -> Array:
     return out
 
 
+@_compiled_when_eager
 def adjoint(T: ArrayLike) -> Array:
     """Adjoint ``[[R, hat(p) R], [0, R]]`` of a pose (Eq. 25): ``(..., 4, 4) -> (..., 6, 6)``."""
     T = _shaped(T, (4, 4), "adjoint", "T")
@@ -268,6 +290,7 @@ def adjoint(T: ArrayLike) -> Array:
     return jnp.concatenate([top, bottom], axis=-2)
 
 
+@_compiled_when_eager
 def from_xyz_rotvec(xyz: ArrayLike, rotvec: ArrayLike) -> Array:
     """Pose from a translation (mm) and a rotation vector (rad): ``(..., 3) x2 -> (..., 4, 4)``.
 
@@ -276,11 +299,13 @@ def from_xyz_rotvec(xyz: ArrayLike, rotvec: ArrayLike) -> Array:
     return make_pose(so3_exp(rotvec), xyz)
 
 
+@_compiled_when_eager
 def to_xyz_rotvec(T: ArrayLike) -> tuple[Array, Array]:
     """Inverse of :func:`from_xyz_rotvec`: translation (mm) and rotation vector (rad)."""
     return translation(T), so3_log(rotation(T))
 
 
+@_compiled_when_eager
 def rotation_angle(R: ArrayLike) -> Array:
     """Angle of a rotation in ``[0, pi]`` (rad), accurate at both ends: ``(..., 3, 3) -> (...)``.
 
