@@ -75,6 +75,11 @@ def _accepted(name: str, value: Any) -> bool:
     return True
 
 
+def _traced(tree: Any) -> bool:
+    """Whether any leaf of ``tree`` is a tracer (the call is inside ``jit``, ``vmap``, ``grad``)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
+
+
 _NESTED = "can only be passed to top-level"
 """JAX's error for ``compiler_options`` on a ``jit`` traced inside another transformation."""
 
@@ -112,7 +117,7 @@ class _LazyJit:
     def __call__(self, *args, **kwargs):
         # A traced argument means a nested call: go to the plain jit directly rather than
         # tracing the function once for JAX to refuse the options and once more without them.
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs))):
+        if _traced((args, kwargs)):
             return self.plain(*args, **kwargs)
         try:  # nested without a traced argument (e.g. constants inside an outer jit)
             return self.jitted(*args, **kwargs)
@@ -186,7 +191,7 @@ def compiled_when_eager(fn: _F) -> _F:
 
     @functools.wraps(fn)
     def call(*args):
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+        if _traced(args):
             return fn(*args)
         return compiled(*(jax.numpy.asarray(a) if isinstance(a, _ARRAY_LIKE) else a for a in args))
 
