@@ -514,13 +514,13 @@ def frame_errors(calibrated: Arm, nominal: Arm) -> Array:
     return error_twists(calibrated.frames, nominal.frames)
 
 
-@jax.jit
+@compiled_when_eager
 def error_twists(frames: ArrayLike, reference: ArrayLike) -> Array:
     """The identified error of each frame, ``dt_j = log(F_j F_j,ref^-1)^v`` (Eqs. 15-18): the
     left-multiplied twist that moves the reference frame onto the frame (``F = exp(dt^) F_ref``,
     Eqs. 11-14). ``(..., K+1, 4, 4)`` twice -> ``(..., K+1, 6)``, ``(v [mm], w [rad])``; the one
-    implementation of this formula in the package. Compiled as one program (called outside
-    ``jit`` it would dispatch the logarithm's operations one by one)."""
+    implementation of this formula in the package. One compiled program when called on concrete
+    arrays (:func:`cdra_jax.compilation.compiled_when_eager`)."""
     return lie.se3_log(jnp.asarray(frames) @ lie.inverse(jnp.asarray(reference)))
 
 

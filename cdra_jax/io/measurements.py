@@ -377,11 +377,6 @@ def _float64(fn, *args) -> tuple[np.ndarray, ...]:
 
 # Compiled once per row count: much faster than dispatching the small ops one by one.
 @jit
-def _poses_from_rotvec(xyz: Array, rotvec: Array) -> Array:
-    return lie.make_pose(lie.so3_exp(rotvec), xyz)
-
-
-@jit
 def _poses_from_quaternion(xyz: Array, quat: Array) -> Array:
     return lie.make_pose(lie.quaternion_to_rotation(quat), xyz)
 
@@ -724,7 +719,7 @@ def loads_measurements(
                     column=ROTVEC_COLUMNS[j],
                     row=int(first[k]),
                 )
-            (poses,) = _float64(_poses_from_rotvec, xyz, rv)
+            (poses,) = _float64(lie.from_xyz_rotvec, xyz, rv)
         else:
             quat = np.stack([values[c] for c in QUATERNION_COLUMNS], axis=-1)[pose_rows]
             norm = np.linalg.norm(quat, axis=-1)

@@ -57,14 +57,10 @@ import tomli_w
 
 from .. import lie
 from ..arm import MODULE_KINDS, Arm, EffectRecord, Marker, Module
-from ..compilation import jit
 from .files import write_text_atomic
 
 _ORTHO_TOL = 1e-6
 _DEFAULT_MODEL = "cdra.toml"
-# One compiled call instead of dozens of small op-by-op dispatches: every CLI run loads a model.
-_from_xyz_rotvec = jit(lie.from_xyz_rotvec)
-_to_xyz_rotvec = jit(lie.to_xyz_rotvec)
 
 
 class ModelFileError(ValueError):
@@ -184,7 +180,7 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
             f"angle {np.linalg.norm(rv):.4g} rad is above {_ROTVEC_MAX_ANGLE:g} rad: "
             "not a rotation vector in radians",
         )
-    return np.asarray(_from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
+    return np.asarray(lie.from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
 
 
 def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
@@ -553,7 +549,7 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
         if exact:
             frames.append({"name": name, "matrix": _floats(M)})
         else:
-            xyz, rv = _to_xyz_rotvec(jnp.asarray(M))
+            xyz, rv = lie.to_xyz_rotvec(jnp.asarray(M))
             frames.append({"name": name, "xyz": _floats(xyz), "rotvec": _floats(rv)})
     modules = []
     for m in arm.modules:

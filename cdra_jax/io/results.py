@@ -75,10 +75,6 @@ from ..compilation import filter_jit
 from .files import json_text, write_text_atomic
 from .measurements import rigid_transform_problem
 
-_to_xyz_rotvec = jax.jit(lie.to_xyz_rotvec)
-"""One compiled program for the frames' ``xyz``/``rotvec`` (rather than a dozen operations
-dispatched one by one when a result is written)."""
-
 RESULT_FORMAT = "cdra_jax.calibration_result"
 RESULT_FORMAT_VERSION = 1
 _REQUIRED = ("solver", "converged", "result", "initial", "iterations", "frames", "identifiability")
@@ -125,8 +121,8 @@ def _readouts(arm: Arm, frames: Array, q: Array, measured: Array):
     """xyz/rotvec of the nominal and calibrated frames; per-pose errors of both models."""
     calibrated = arm.with_frames(frames)
     return (
-        _to_xyz_rotvec(jnp.asarray(arm.frames)),
-        _to_xyz_rotvec(jnp.asarray(frames)),
+        lie.to_xyz_rotvec(jnp.asarray(arm.frames)),
+        lie.to_xyz_rotvec(jnp.asarray(frames)),
         pose_errors(measured, tool_pose(arm, q)),
         pose_errors(measured, tool_pose(calibrated, q)),
     )
@@ -522,8 +518,8 @@ def auto_result_to_dict(
             }
         residuals.append(row)
     nominal_frames = np.asarray(arm.frames, dtype=float)
-    nxyz, nrv = (np.asarray(a) for a in _to_xyz_rotvec(jnp.asarray(nominal_frames)))
-    cxyz, crv = (np.asarray(a) for a in _to_xyz_rotvec(jnp.asarray(sol.frames)))
+    nxyz, nrv = (np.asarray(a) for a in lie.to_xyz_rotvec(jnp.asarray(nominal_frames)))
+    cxyz, crv = (np.asarray(a) for a in lie.to_xyz_rotvec(jnp.asarray(sol.frames)))
     frames = {
         name: {
             "nominal": _pose_dict(nominal_frames[j], nxyz[j], nrv[j]),
