@@ -38,7 +38,7 @@ import numpy as np
 from jax import Array
 
 from .. import lie
-from ..arm import Arm
+from ..arm import Arm, apply_frame_errors
 from ..calibration.damped import levenberg_marquardt
 from ..calibration.model import NoiseModel, residual_twist, tool_points
 from ..calibration.observations import stacked_residual
@@ -403,7 +403,7 @@ def refine(
     if p:
         std = np.where(np.linalg.norm(J[:, -p:], axis=0) > 0, std, np.nan)
     X = y[:n].reshape(-1, 6)
-    frames = np.asarray(lie.se3_exp(jnp.asarray(X)) @ jnp.asarray(arm.frames))
+    frames = np.asarray(apply_frame_errors(arm, X).frames)
     return EffectRefit(
         errors=X,
         frames=frames,
