@@ -93,9 +93,16 @@ class _LazyJit:
     apply to it).
     """
 
-    def __init__(self, make: Callable[[dict[str, Any]], Callable], fun: Callable, fast: bool):
+    def __init__(
+        self,
+        make: Callable[[dict[str, Any]], Callable],
+        fun: Callable,
+        fast: bool,
+        prepare: Callable[[Any], Any] | None = None,
+    ):
         self._make = make
         self._fast = fast
+        self._prepare = prepare
         self._jitted: Callable | None = None
         self._plain: Callable | None = None
         functools.update_wrapper(self, fun)
@@ -115,6 +122,8 @@ class _LazyJit:
         return self._plain
 
     def __call__(self, *args, **kwargs):
+        if self._prepare is not None:
+            args, kwargs = self._prepare((args, kwargs))
         # A traced argument means a nested call: go to the plain jit directly rather than
         # tracing the function once for JAX to refuse the options and once more without them.
         if _traced((args, kwargs)):
@@ -155,7 +164,16 @@ def jit(fun: Callable, *, fast_compile: bool = False, **jit_kwargs) -> Any:
 
 
 def filter_jit(fun: Callable, *, fast_compile: bool = False, **jit_kwargs) -> Any:
-    """:func:`equinox.filter_jit` with :func:`compiler_options` (see :func:`jit`)."""
+    """:func:`equinox.filter_jit` with :func:`compiler_options` (see :func:`jit`).
+
+    Unlike plain :func:`equinox.filter_jit`, the Python numbers held in the data fields of an
+    ``equinox.Module`` argument (a :class:`~cdra_jax.calibration.NoiseModel` of floats, say)
+    are traced, as weakly typed scalars (the promotion rules of a Python number), not compiled
+    in as constants: one program serves every noise value, where each value would otherwise
+    compile its own (1.5 s for the geometric fit of a diagnosis, whose noise is estimated
+    afresh for every recording). A module's static fields (``equinox.field(static=True)``)
+    and the numbers passed as arguments themselves (tolerances, counts) stay static.
+    """
     import equinox as eqx
 
     own = jit_kwargs.pop("compiler_options", None) or {}
@@ -163,7 +181,21 @@ def filter_jit(fun: Callable, *, fast_compile: bool = False, **jit_kwargs) -> An
     def make(options):
         return eqx.filter_jit(fun, compiler_options={**options, **own}, **jit_kwargs)
 
-    return _LazyJit(make, fun, fast_compile)
+    return _LazyJit(make, fun, fast_compile, prepare=_module_numbers_traced)
+
+
+def _module_numbers_traced(tree: Any) -> Any:
+    """``tree`` with every Python ``float`` inside an ``equinox.Module``'s data fields made a
+    weakly typed JAX scalar (``jnp.asarray``), so that :func:`filter_jit` traces it."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    def numbers(module: Any) -> Any:
+        if not isinstance(module, eqx.Module):
+            return module
+        return jax.tree.map(lambda x: jnp.asarray(x) if type(x) is float else x, module)
+
+    return jax.tree.map(numbers, tree, is_leaf=lambda x: isinstance(x, eqx.Module))
 
 
 _F = TypeVar("_F", bound=Callable[..., object])

@@ -69,6 +69,34 @@ def test_nested_call_traces_the_function_once():
     assert len(traces) == 1  # straight to the plain jit: no refused attempt with the options
 
 
+def test_filter_jit_traces_the_numbers_of_a_module_not_those_passed_alone():
+    """A NoiseModel of floats is data: one program for every noise value, with the promotion
+    of a Python number (a float32 input stays float32); a float passed as an argument itself
+    (a tolerance) stays static, and so do a module's static fields."""
+    traces = []
+
+    def scaled(noise, x, k):
+        traces.append(k)
+        return k * x / noise.position_mm + noise.rotation_rad
+
+    f = compilation.filter_jit(scaled)
+    x = jnp.ones(3, jnp.float32)
+    a = f(cdra_jax.NoiseModel(0.5, 1e-3), x, 2.0)
+    b = f(cdra_jax.NoiseModel(0.25, 2e-3), x, 2.0)
+    assert traces == [2.0]
+    assert a.dtype == b.dtype == jnp.float32
+    np.testing.assert_allclose(b, 8.002, rtol=1e-6)
+    f(cdra_jax.NoiseModel(0.25, 2e-3), x, 3.0)
+    assert traces == [2.0, 3.0]
+    noise = cdra_jax.NoiseModel(0.5, 1e-3)
+    f(noise, x, 2.0)
+    assert type(noise.position_mm) is float  # the caller's module is not changed
+
+    arm = cdra_jax.default_arm()
+    names = compilation.filter_jit(lambda arm, x: (arm.name, x * arm.gravity[2]))
+    assert names(arm, 2.0)[0] == arm.name
+
+
 def test_probe_runs_when_first_used_inside_another_jit(monkeypatch):
     # The options' probe compiles its own small program while the outer jit traces. (A call
     # with a traced argument goes to the plain jit without probing; one with constants only
