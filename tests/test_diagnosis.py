@@ -606,3 +606,31 @@ def test_a_misfit_that_changes_with_time_is_placed_at_the_frame_whose_time_probe
     f = base().F
     probe = next(c for c in base().everything if isinstance(c.effect, TimeProbe))
     assert len(probe.parameters(arm)) == 6 and f.n_params > 0
+
+
+def test_refit_columns_are_those_of_the_full_jacobian(monkeypatch):
+    """The refit's steps take only the free columns of the Jacobian (forward mode, in blocks
+    of COLUMN_BUCKET lanes): equal to those columns of the full jacfwd Jacobian, for column
+    sets that fill a block exactly, part of one, and more than one."""
+    from cdra_jax.diagnosis import model
+
+    problems = []
+    full = model.residual_and_jacobian
+
+    def spy(y, problem):
+        problems.append((y, problem))
+        return full(y, problem)
+
+    monkeypatch.setattr(model, "residual_and_jacobian", spy)
+    c = find("periodic_error", "elbow", "k=2")
+    diagnose(base().arm, recordings(c, [0.002, 0.001]), NOISE)
+    y, problem = problems[-1]
+    y = y + 1e-3 * jnp.sin(jnp.arange(y.shape[0]))  # away from the fit, every entry moved
+    r, J = full(y, problem)
+    rng = np.random.default_rng(0)
+    for k in (model.COLUMN_BUCKET, 7, model.COLUMN_BUCKET + 9):
+        cols = np.sort(rng.choice(y.shape[0], k, replace=False))
+        r_k, J_k = model.residual_and_columns(y, problem, cols)
+        np.testing.assert_allclose(r_k, r, rtol=0, atol=1e-12 * float(np.max(np.abs(r))))
+        scale = float(np.max(np.abs(J[:, cols])))
+        np.testing.assert_allclose(J_k, J[:, cols], rtol=0, atol=1e-12 * scale)
