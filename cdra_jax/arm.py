@@ -505,8 +505,24 @@ def apply_frame_errors(arm: Arm, errors: ArrayLike) -> Arm:
             f"frame of {arm.frame_names}: pass ({arm.n_params},) or "
             f"({len(arm.frame_names)}, 6), got errors of shape {X.shape}"
         )
-    X = X.reshape(len(arm.frame_names), 6)
-    return arm.with_frames(lie.se3_exp(X) @ arm.frames)
+    return arm.with_frames(moved_frames(arm.frames, X))
+
+
+def moved_frames(frames: ArrayLike, errors: ArrayLike) -> Array:
+    """The fixed frames moved by their error twists, ``F_j -> exp(hat(X_j)) F_j`` (Eqs. 11-14).
+
+    Args:
+        frames: ``(K+1, 4, 4)`` fixed transforms (mm).
+        errors: ``(K+1, 6)`` twists ``(v, w)`` (mm, rad), or the flat ``(6 (K+1),)`` of Eq. 8.
+
+    Returns:
+        ``(K+1, 4, 4)``, in the promoted dtype of the two. :func:`apply_frame_errors` is the
+        same on an :class:`Arm`; :func:`cdra_jax.calibration.kernels.step_frames` the same
+        product written for the solvers' batched loops.
+    """
+    F = jnp.asarray(frames)
+    X = jnp.asarray(errors).reshape(F.shape[-3], 6)
+    return lie.se3_exp(X) @ F
 
 
 def frame_errors(calibrated: Arm, nominal: Arm) -> Array:

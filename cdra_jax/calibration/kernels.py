@@ -25,6 +25,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from .. import lie
+from ..arm import moved_frames
 from .model import NoiseModel
 
 
@@ -89,8 +90,9 @@ def left_multiply(E: Array, F: Array) -> Array:
 
 
 def step_frames(X: Array, frames: Array) -> Array:
-    """The frames after a step, ``exp(hat(X_j)) F_j`` (Eqs. 11-14): ``X (6 (K+1),)`` (Eq. 8's
-    order), ``frames (K+1, 4, 4)``, products as :func:`left_multiply`."""
+    """The frames after a step, ``exp(hat(X_j)) F_j`` (Eqs. 11-14, :func:`cdra_jax.arm.
+    moved_frames`): ``X (6 (K+1),)`` (Eq. 8's order), ``frames (K+1, 4, 4)``, products as
+    :func:`left_multiply`."""
     return left_multiply(lie.se3_exp(X.reshape(frames.shape[0], 6)), frames)
 
 
@@ -539,7 +541,7 @@ def residual_jacobian(
     k1 = frames0.shape[0]
     n = 6 * k1
     xi = X.reshape(k1, 6)
-    frames = lie.se3_exp(xi) @ frames0
+    frames = moved_frames(frames0, xi)
     lin = linearise(frames, poses, measured)  # unwhitened: D = [I, Ad(P_i)] at F(X)
     m = measured.shape[-1]
     r = lin.Y.reshape(6, m)  # log(Delta)^v, Delta = T_meas T(X)^-1

@@ -33,7 +33,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from .. import lie
-from ..arm import Arm, chain, module_poses
+from ..arm import Arm, chain, module_poses, moved_frames
 from .model import NoiseModel, point_residual, residual_twist, tool_points, whitening
 
 
@@ -148,8 +148,7 @@ def apply_parameters(
     """``(frames (K+1, 4, 4), xyz (P, 3))`` at the parameters ``theta = [X; dx]``."""
     theta, frames0, xyz0 = jnp.asarray(theta), jnp.asarray(frames0), jnp.asarray(xyz0)
     n_frames = frames0.shape[0]
-    X = theta[: 6 * n_frames].reshape(n_frames, 6)
-    frames = lie.se3_exp(X) @ frames0
+    frames = moved_frames(frames0, theta[: 6 * n_frames])
     if calibrated:
         dx = theta[6 * n_frames :].reshape(len(calibrated), 3)
         xyz0 = xyz0.at[jnp.asarray(calibrated)].add(dx)

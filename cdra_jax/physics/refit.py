@@ -38,7 +38,7 @@ import numpy as np
 from jax import Array
 
 from .. import lie
-from ..arm import Arm, apply_frame_errors
+from ..arm import Arm, apply_frame_errors, moved_frames
 from ..calibration.damped import levenberg_marquardt
 from ..calibration.model import NoiseModel, residual_twist, tool_points
 from ..calibration.observations import stacked_residual
@@ -55,7 +55,7 @@ def extended_tool_pose(
     n = arm.n_params
     X = y[:n].reshape(-1, 6)
     theta = y[n:]
-    moved = arm.with_frames(lie.se3_exp(X) @ jnp.asarray(arm.frames, y.dtype))
+    moved = arm.with_frames(moved_frames(jnp.asarray(arm.frames, y.dtype), X))
     frozen = moved.with_frames(jax.lax.stop_gradient(moved.frames))
     features = model_features(frozen, q, aux, candidates)
     return corrected_tool_pose(moved, q, features, theta)
