@@ -634,3 +634,24 @@ def test_refit_columns_are_those_of_the_full_jacobian(monkeypatch):
         np.testing.assert_allclose(r_k, r, rtol=0, atol=1e-12 * float(np.max(np.abs(r))))
         scale = float(np.max(np.abs(J[:, cols])))
         np.testing.assert_allclose(J_k, J[:, cols], rtol=0, atol=1e-12 * scale)
+
+
+def test_the_shape_check_weights_each_kind_of_entry_by_its_spread():
+    """Position entries twice as spread as the rotation entries (as when the noise values were
+    estimated from a residual that holds a misfit) are weighted down to the same spread after
+    the alternative's columns are fitted; the weights do not depend on the overall scale."""
+    from cdra_jax.diagnosis.core import _POINT, _POSITION, _ROTATION, _kind_weights, _Rows
+
+    rng = np.random.default_rng(5)
+    kind = np.repeat([_POSITION, _ROTATION, _POINT], 300)
+    n = kind.size
+    point = np.where(kind == _POINT, 0, -1)
+    rows = _Rows(*(np.arange(n),) * 2, kind, *(np.zeros(n, int),) * 2, point, np.ones(n))
+    J = rng.standard_normal((n, 4))
+    spread = np.select([kind == _POSITION, kind == _ROTATION], [2.0, 1.0], 0.5)
+    r = spread * rng.standard_normal(n) + J @ np.array([3.0, -1.0, 0.5, 2.0])
+    w = _kind_weights(r, J, rows)
+    ratio = [float(w[kind == k][0]) for k in (_POSITION, _ROTATION, _POINT)]
+    np.testing.assert_allclose(np.array(ratio) / ratio[1], [0.5, 1.0, 2.0], rtol=0.15)
+    assert np.mean(w**2) == pytest.approx(1.0)
+    np.testing.assert_allclose(_kind_weights(10 * r, 10 * J, rows), w, rtol=1e-12)

@@ -1665,7 +1665,13 @@ def _shape_check(
     is not mistaken for another shape. A periodic error has the same amplitudes throughout;
     a saturating or monotone shape that a few harmonics fit over less than one period does
     not (the fitted harmonic follows the steep part on one side and the flat part on the
-    other). No noise value is needed (an F ratio)."""
+    other).
+
+    No noise value is needed: an F ratio, with each kind of entry (positions, rotations, each
+    point) weighted by its spread under the alternative. Weighted by a noise estimated from a
+    residual that still holds the misfit (as without noise values: the position noise comes
+    out inflated), the positions, where a misfit of a transmission mostly shows, would count
+    for less than with the true noise, and the verdict would depend on the noise values."""
     series = [c for c in fit.forms if c.coordinate(lin.arm, lin.problem.q) is not None]
     if not series:
         return None
@@ -1673,10 +1679,7 @@ def _shape_check(
     lead = fit.lead
     place = [c for c in live if (c.name, c.location) == (lead.name, lead.location)]
     null = list(fit.forms) + [c for c in place if _joins(c, fit.forms)]
-    U = stats.orthonormal_basis(
-        fit.J[:, np.concatenate([np.arange(n_geo), n_geo + _columns(null, lin.cols)])]
-    )
-    r = fit.r - U @ (U.T @ fit.r)
+    J_null = fit.J[:, np.concatenate([np.arange(n_geo), n_geo + _columns(null, lin.cols)])]
     blocks = []
     for c in series:
         found = c.coordinate(lin.arm, lin.problem.q)
@@ -1685,9 +1688,30 @@ def _shape_check(
         above = (z > np.quantile(z, SHAPE_SPLIT, axis=0)).astype(float)
         Jc = fit.J[:, n_geo + _columns([c], lin.cols)]
         blocks.append(Jc * above[lin.rows.row][:, owner])
-    proj = stats.project(np.hstack(blocks), U)
-    Fv, p, df1, _ = stats.f_test(r, proj.basis, r.size - U.shape[1], floor2)
+    split = np.hstack(blocks)
+    w = _kind_weights(fit.r, np.hstack([J_null, split]), lin.rows)
+    U = stats.orthonormal_basis(w[:, None] * J_null)
+    r = w * fit.r
+    r = r - U @ (U.T @ r)
+    proj = stats.project(w[:, None] * split, U)
+    Fv, p, df1, _ = stats.f_test(r, proj.basis, r.size - U.shape[1], floor2 * float(np.max(w**2)))
     return {"F": _num(Fv), "p_value": float(p), "df": int(df1)}
+
+
+def _kind_weights(r: np.ndarray, J: np.ndarray, rows: _Rows) -> np.ndarray:
+    """``(N,)`` weights of the entries of the whitened residual ``r``: one per kind of entry
+    (full-pose position, rotation, each point), the inverse of that kind's root mean square
+    after fitting the columns ``J``, normalised to a mean square of 1."""
+    U = stats.orthonormal_basis(J)
+    e = r - U @ (U.T @ r)
+    groups = np.where(rows.kind == _POINT, 2 + rows.point, rows.kind)
+    w = np.ones(r.size)
+    for g in np.unique(groups):
+        sel = groups == g
+        ms = float(np.mean(e[sel] ** 2))
+        if ms > 0.0 and np.isfinite(ms):
+            w[sel] = 1.0 / np.sqrt(ms)
+    return w / np.sqrt(np.mean(w**2))
 
 
 def _locate_unattributed(
