@@ -609,9 +609,11 @@ def test_a_misfit_that_changes_with_time_is_placed_at_the_frame_whose_time_probe
 
 
 def test_refit_columns_are_those_of_the_full_jacobian(monkeypatch):
-    """The refit's steps take only the free columns of the Jacobian (forward mode, in blocks
-    of COLUMN_BUCKET lanes): equal to those columns of the full jacfwd Jacobian, for column
-    sets that fill a block exactly, part of one, and more than one."""
+    """The Jacobian's columns (forward mode, in blocks of COLUMN_BUCKET lanes; the refit's
+    steps take only the free ones) equal those of jax.jacfwd of the whitened residual, for
+    column sets that fill a block exactly, part of one, more than one, and all of them."""
+    import jax
+
     from cdra_jax.diagnosis import model
 
     problems = []
@@ -626,7 +628,11 @@ def test_refit_columns_are_those_of_the_full_jacobian(monkeypatch):
     diagnose(base().arm, recordings(c, [0.002, 0.001]), NOISE)
     y, problem = problems[-1]
     y = y + 1e-3 * jnp.sin(jnp.arange(y.shape[0]))  # away from the fit, every entry moved
-    r, J = full(y, problem)
+    residual = jax.jit(lambda yy: model.whitened_residual(yy, problem))
+    r, J = residual(y), jax.jit(jax.jacfwd(residual))(y)
+    r_all, J_all = full(y, problem)
+    np.testing.assert_allclose(r_all, r, rtol=0, atol=1e-12 * float(np.max(np.abs(r))))
+    np.testing.assert_allclose(J_all, J, rtol=0, atol=1e-12 * float(np.max(np.abs(J))))
     rng = np.random.default_rng(0)
     for k in (model.COLUMN_BUCKET, 7, model.COLUMN_BUCKET + 9):
         cols = np.sort(rng.choice(y.shape[0], k, replace=False))

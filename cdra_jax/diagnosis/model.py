@@ -90,12 +90,10 @@ def whitened_residual(y: Array, problem: Extended) -> Array:
     )
 
 
-@filter_jit
 def residual_and_jacobian(y: Array, problem: Extended) -> tuple[Array, Array]:
-    """Residual ``(N,)`` and its Jacobian ``(N, len(y))`` (``jax.jacfwd``), compiled once
-    per shape."""
-    fn = lambda yy: whitened_residual(yy, problem)
-    return fn(y), jax.jacfwd(fn)(y)
+    """Residual ``(N,)`` and its Jacobian ``(N, len(y))``: every column of
+    :func:`residual_and_columns`."""
+    return residual_and_columns(y, problem, np.arange(y.shape[0]))
 
 
 COLUMN_BUCKET = 16
