@@ -247,6 +247,7 @@ _SLOW: dict[str, tuple[str, ...]] = {
         "test_a_shape_the_vocabulary_lacks_is_unattributed_where_it_lives_without_noise_values",
         "test_bad_inputs_raise_clear_errors",
         "test_a_misfit_that_changes_with_time_is_placed_at_the_frame_whose_time_probe_explains_it",
+        "test_refit_columns_are_those_of_the_full_jacobian",
     ),
     "tests/test_float32_and_noise_checks.py": (
         "test_explicit_tolerances_still_apply_in_float32",
