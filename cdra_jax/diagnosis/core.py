@@ -73,7 +73,14 @@ from ..physics import (
     with_effects,
 )
 from . import stats
-from .model import Extended, all_features, geometric_fit, joint_refit, residual_and_jacobian
+from .model import (
+    Extended,
+    all_features,
+    geometric_fit,
+    joint_refit,
+    residual_and_columns,
+    residual_and_jacobian,
+)
 from .report import render_report
 from .result import CandidateRow, Diagnosis, HeldOutErrors, ParameterEstimate, _num
 
@@ -192,6 +199,12 @@ class _Rows:
     def size(self) -> int:
         return int(self.take.size)
 
+    @property
+    def noise_group(self) -> np.ndarray:
+        """``(N,)`` the noise each entry has: 0 full-pose position, 1 rotation, ``2 + j``
+        point ``j``."""
+        return np.where(self.kind == _POINT, 2 + self.point, self.kind)
+
 
 def _rows(problem: Extended) -> _Rows:
     obs = problem.obs
@@ -258,11 +271,11 @@ def _point_noise(
         y = np.zeros(unit.n_frames_markers + unit.features.n_params)
     if free is None:
         free = np.arange(unit.n_geometric)
-    e, D = residual_and_jacobian(jnp.asarray(y, dtype), unit)
+    e, D = residual_and_columns(jnp.asarray(y, dtype), unit, free)
     rows = _rows(unit)
     e = np.asarray(e, float)[rows.take]
-    D = np.asarray(D, float)[np.ix_(rows.take, free)]
-    groups = np.where(rows.kind == _POINT, 2 + rows.point, rows.kind)
+    D = np.asarray(D, float)[rows.take]
+    groups = rows.noise_group
     floors = np.array([floor[0], floor[1]] + [floor[0]] * P)
     s = stats.variance_components(e, D, groups, floors)
     present = np.array([np.any(groups == g) for g in range(2 + P)])
@@ -1704,7 +1717,7 @@ def _kind_weights(r: np.ndarray, J: np.ndarray, rows: _Rows) -> np.ndarray:
     after fitting the columns ``J``, normalised to a mean square of 1."""
     U = stats.orthonormal_basis(J)
     e = r - U @ (U.T @ r)
-    groups = np.where(rows.kind == _POINT, 2 + rows.point, rows.kind)
+    groups = rows.noise_group
     w = np.ones(r.size)
     for g in np.unique(groups):
         sel = groups == g

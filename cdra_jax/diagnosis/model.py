@@ -104,9 +104,9 @@ lanes give zero columns, dropped), so that refits of different sizes share a few
 def residual_and_columns(y: Array, problem: Extended, columns: np.ndarray) -> tuple[Array, Array]:
     """Residual ``(N,)`` and the columns ``columns`` (indices into ``y``) of its Jacobian,
     ``(N, len(columns))``: forward mode with one tangent per column (``jax.linearize``), a
-    small fraction of :func:`residual_and_jacobian`'s cost where few entries of ``y`` are
-    free (the frames and one candidate's parameters of several hundred: about 4 ms against
-    80 ms for 30 CDRA poses). Compiled once per block count (:data:`COLUMN_BUCKET`)."""
+    small fraction of the cost of every column where few entries of ``y`` are asked for (the
+    frames and one candidate's parameters of several hundred: about 4 ms against 80 ms for
+    30 CDRA poses). Compiled once per block count (:data:`COLUMN_BUCKET`)."""
     columns = np.asarray(columns, int)
     k = len(columns)
     padded = -(-max(k, 1) // COLUMN_BUCKET) * COLUMN_BUCKET
