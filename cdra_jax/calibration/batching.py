@@ -136,7 +136,7 @@ def chunked_loop(
         flag = jax.ShapeDtypeStruct((), bool)
         body_r, _ = _traced_once(body, scalar, scalar, flag, state_s, data_s)
         running_r, _ = _traced_once(running, state_s)
-        finish_r, _ = _traced_once(finish, scalar, state_s, data_s)
+        finish_r, (out_s, _) = _traced_once(finish, scalar, state_s, data_s)
 
         def chunk_fn(mode, *chunk):
             state, data = jax.vmap(init_r, in_axes=(None,) + (0,) * len(chunk))(mode, *chunk)
@@ -171,8 +171,7 @@ def chunked_loop(
         def unbatched(*a):
             # Mode after mode while the trial wants another (a chunk of one has no stragglers):
             # the replays, not a batch of one, so that nothing is batched twice when traced.
-            out0, want0 = jax.eval_shape(solve, jnp.int32(0), *a)
-            zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out0)
+            zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_s)
 
             def again(c):
                 mode, _ = c
