@@ -161,11 +161,12 @@ def ur5():
 
 # Each test module runs on one worker (`--dist loadfile`, pyproject.toml), so that its tests share
 # the programs they compile (the same solvers at the same shapes): with the tests dealt out one by
-# one, both workers traced and compiled most programs, and the suite took 15 % longer (1,000
-# against 870 worker-seconds). The modules are handed out in this order, the longest (by their
-# measured time, 20-110 s) first, so that with `-n 2` the two workers end on short modules
-# instead of one finishing a long one alone (`--no-loadscope-reorder`: xdist's own order is by
-# the number of tests). The others follow in the order of collection.
+# one, a module's tests were spread over both workers, each tracing and compiling their programs,
+# and the suite took 15 % longer (1,000 against 870 worker-seconds). The modules are handed out
+# in this order, the longest (by their measured time, 20-110 s) first, so that with `-n 2` the
+# two workers end on short modules instead of one finishing a long one alone
+# (`--no-loadscope-reorder`: xdist's own order is by the number of tests). The others follow in
+# the order of collection.
 _LONG_FIRST = (
     "tests/test_diagnosis.py",
     "tests/test_notebooks.py",

@@ -145,7 +145,6 @@ def test_null_space_solve_flags_data_rank_deficiency(cdra):
 
 
 @eqx.filter_jit
-@eqx.filter_jit
 def _solves(arm, q, T, noise, kw_a, kw_b):
     def one(qq, tt, kw):
         return calibrate_paper(arm, qq, tt, noise, throw=False, **kw)
