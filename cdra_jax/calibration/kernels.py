@@ -199,10 +199,16 @@ def _hat(w):
 
 
 def _series_or_exact(x, series, exact):
-    """``series(x)`` below the small-angle threshold of :mod:`cdra_jax.lie`, else ``exact``."""
+    """``series(x)`` below the small-angle threshold of :mod:`cdra_jax.lie`, else
+    ``exact(x, t, sin t, 1 - cos t, (t/2) cot(t/2))`` (``t = sqrt(x)``), from one sine and one
+    cosine of ``t/2`` (XLA:CPU evaluates them per element: the coefficients of one pose share
+    them)."""
     small = x < lie._SMALL_ANGLE_SQ
     safe = jnp.where(small, jnp.ones_like(x), x)
-    return jnp.where(small, series(x), exact(safe, jnp.sqrt(safe)))
+    t = jnp.sqrt(safe)
+    sh, ch = jnp.sin(0.5 * t), jnp.cos(0.5 * t)
+    trig = (safe, t, 2 * sh * ch, 2 * sh * sh, 0.5 * t * ch / sh)
+    return tuple(jnp.where(small, s(x), e(*trig)) for s, e in zip(series, exact, strict=True))
 
 
 def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
@@ -224,43 +230,38 @@ def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
     """
     v, w = xi[:3], xi[3:]
     x = jnp.sum(w * w, axis=0)
-    c1 = _series_or_exact(
+    c1, c2, c3, b, ci = _series_or_exact(
         x,
-        lambda x: (1 - x / 20 * (1 - x / 42 * (1 - x / 72 * (1 - x / 110)))) / 6,
-        lambda x, t: (t - jnp.sin(t)) / (x * t),
+        (
+            lambda x: (1 - x / 20 * (1 - x / 42 * (1 - x / 72 * (1 - x / 110)))) / 6,
+            lambda x: (1 - x / 30 * (1 - x / 56 * (1 - x / 90 * (1 - x / 132)))) / 24,
+            lambda x: 1 / 120 - x / 2520 + x * x / 120960 - x * x * x / 9979200,
+            lambda x: 0.5 * (1 - x / 12 * (1 - x / 30 * (1 - x / 56 * (1 - x / 90)))),
+            lambda x: 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
+        ),
+        (
+            lambda x, t, s, omc, hcot: (t - s) / (x * t),
+            lambda x, t, s, omc, hcot: (0.5 * x - omc) / (x * x),
+            lambda x, t, s, omc, hcot: (2 * t - 3 * s + t * (1 - omc)) / (2 * x * x * t),
+            lambda x, t, s, omc, hcot: omc / x,
+            lambda x, t, s, omc, hcot: (1 - hcot) / x,
+        ),
     )
-    c2 = _series_or_exact(
-        x,
-        lambda x: (1 - x / 30 * (1 - x / 56 * (1 - x / 90 * (1 - x / 132)))) / 24,
-        lambda x, t: (0.5 * x + jnp.cos(t) - 1) / (x * x),
-    )
-    c3 = _series_or_exact(
-        x,
-        lambda x: 1 / 120 - x / 2520 + x * x / 120960 - x * x * x / 9979200,
-        lambda x, t: (2 * t - 3 * jnp.sin(t) + t * jnp.cos(t)) / (2 * x * x * t),
-    )
-    b = _series_or_exact(
-        x,
-        lambda x: 0.5 * (1 - x / 12 * (1 - x / 30 * (1 - x / 56 * (1 - x / 90)))),
-        lambda x, t: (1 - jnp.cos(t)) / x,
-    )
-    ci = _series_or_exact(
-        x,
-        lambda x: 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
-        lambda x, t: (1 - 0.5 * t * jnp.sin(t) / (2 * jnp.sin(0.5 * t) ** 2)) / x,
-    )
+    # The products of hat matrices in closed form (d = w.v, u = w x v; a b^T - b a^T =
+    # hat(b x a)): W^2 = w w^T - x I, W V + V W = v w^T + w v^T - 2 d I, W V W = -d W,
+    # W^2 V + V W^2 - 3 W V W = hat(w x u) + d W = 2 d W - x V, W V W^2 + W^2 V W = -2 d W^2.
     W, V = _hat(w), _hat(v)
-    W2 = _matmul3(W, W)
-    WV, VW = _matmul3(W, V), _matmul3(V, W)
-    WVW = _matmul3(WV, W)
+    d = jnp.sum(w * v, axis=0)
     eye = jnp.eye(3, dtype=xi.dtype).reshape((3, 3) + (1,) * (xi.ndim - 1))
+    ww = w[:, None] * w[None, :]
+    W2 = ww - x * eye
     J = eye + b * W + c1 * W2
     J_inv = eye - 0.5 * W + ci * W2
     Q = (
-        0.5 * V
-        + c1 * (WV + VW + WVW)
-        + c2 * (_matmul3(W, WV) + _matmul3(VW, W) - 3 * WVW)
-        + c3 * (_matmul3(WVW, W) + _matmul3(W, WVW))
+        (0.5 - c2 * x) * V
+        + (2 * c2 - c1) * d * W
+        + c1 * (v[:, None] * w[None, :] + w[:, None] * v[None, :])
+        - 2 * d * (c1 * eye + c3 * W2)
     )
     return J, Q, J_inv
 
