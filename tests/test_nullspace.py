@@ -238,3 +238,56 @@ def test_predictive_stop_keeps_the_answers(cdra, paper15, case, weighted):
     np.testing.assert_allclose(
         np.asarray(predict(new.frames)), np.asarray(predict(ref.frames)), rtol=0, atol=1e-8
     )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("noise", [None, NoiseModel(0.08, 1e-3)], ids=["clean", "noisy"])
+def test_lm_settled_trials_keep_the_answers(cdra, noise, monkeypatch):
+    """LM's predicted stop (:func:`.levenberg_marquardt._settled`, the default) on the paper's
+    problem (m = 15, errors +-1 mm / +-0.05 rad): frames within 1e-8 mm of the stop by the
+    tests on the next proposal alone, no more steps, the same result codes; noise-free the
+    prediction stops most trials."""
+    from cdra_jax.calibration import calibrate_lm
+    from cdra_jax.calibration import levenberg_marquardt as lm
+
+    keys = jax.random.split(jax.random.PRNGKey(5), 64)
+    sim = jax.vmap(lambda k: simulation.simulate_trial(k, cdra, 15, d_v=1.0, d_w=0.05, noise=noise))
+    q, T, *_ = jax.jit(sim)(keys)
+
+    def solve():
+        return jax.jit(jax.vmap(lambda q, T: calibrate_lm(cdra, q, T, throw=False)))(q, T)
+
+    settled = []
+    predict = lm._settled
+
+    def recorded(*args):
+        out = predict(*args)
+        jax.debug.callback(lambda s: settled.append(int(np.sum(s))), out)
+        return out
+
+    monkeypatch.setattr(lm, "_settled", recorded)
+    new = solve()
+    if noise is None:
+        assert sum(settled) > 32  # the prediction stopped most trials
+    monkeypatch.setattr(lm, "_settled", lambda *args: jnp.asarray(False))
+    ref = solve()
+    np.testing.assert_array_equal(new.result._value, ref.result._value)
+    assert np.all(np.asarray(new.iterations) <= np.asarray(ref.iterations))
+    np.testing.assert_allclose(np.asarray(new.frames), np.asarray(ref.frames), rtol=0, atol=1e-8)
+
+
+def test_lm_settles_on_quadratic_convergence_only():
+    """The step prediction stops a trial whose rates fall (Gauss-Newton's quadratic
+    convergence), not one with the same last step that converges linearly."""
+    from cdra_jax.calibration.levenberg_marquardt import _settled
+
+    u = jnp.full(6, 100.0)
+    scaled = jnp.full(6, 1e-5)  # the tolerance: 1e-11 + 1e-12 * 100 = 1.1e-10
+    rtol, atol = 1e-12, 1e-11
+    # rates 1e-2 then 1e-4: the next about 1e-6, the steps to come ~1e-11
+    assert bool(_settled(scaled, 1e-4, 1e-2, u, rtol, atol))
+    # rates level at 1e-4: the steps to come ~1e-9, above the tolerance
+    assert not bool(_settled(scaled, 1e-4, 1e-4, u, rtol, atol))
+    # one rate known (the second step), or a step that grew: no prediction
+    assert not bool(_settled(scaled, 1e-4, jnp.nan, u, rtol, atol))
+    assert not bool(_settled(scaled, 2.0, 1e-2, u, rtol, atol))
