@@ -284,8 +284,12 @@ def test_lm_settles_on_quadratic_convergence_only():
     u = jnp.full(6, 100.0)
     scaled = jnp.full(6, 1e-5)  # the tolerance: 1e-11 + 1e-12 * 100 = 1.1e-10
     rtol, atol = 1e-12, 1e-11
-    # rates 1e-2 then 1e-4: the next about 1e-6, the steps to come ~1e-11
+    # rates 1e-2 then 1e-4 (quadratic): the next about 1e-8, the steps to come ~1e-13
     assert bool(_settled(scaled, 1e-4, 1e-2, u, rtol, atol))
+    # the same rates after a larger step: the steps to come ~1e-9, above the tolerance
+    assert not bool(_settled(1e4 * scaled, 1e-4, 1e-2, u, rtol, atol))
+    # rates 1e-2 then 1e-3, faster but not quadratic: the next about 1e-4, ~1e-9 to come
+    assert not bool(_settled(scaled, 1e-3, 1e-2, u, rtol, atol))
     # rates level at 1e-4: the steps to come ~1e-9, above the tolerance
     assert not bool(_settled(scaled, 1e-4, 1e-4, u, rtol, atol))
     # one rate known (the second step), or a step that grew: no prediction

@@ -482,19 +482,28 @@ def _identifiable_basis(lin: kernels.Linearisation, rcond: float | None) -> Arra
     return V * scale
 
 
+QUADRATIC_SLACK = 4.0
+"""How far below the square of the rate before it a step's rate may lie for the convergence to
+count as quadratic (see :func:`_settled`)."""
+
+
 def _settled(scaled, rate, last_rate, u, rtol, atol):
     """Whether the steps after the one just taken (``scaled``, in the units of ``r~``) are
     predicted to pass the step test of :func:`_converged` (``xtol``).
 
     ``rate`` is the norm of the scaled step just taken over that of the step taken before,
-    ``last_rate`` the same one step earlier (NaN where not known). The next rate is predicted
-    as ``rate * min(1, rate / last_rate)``: the last rate where the convergence is linear (the
-    rates level off), smaller where it speeds up (Gauss-Newton's quadratic convergence on
-    noise-free data, where each rate is about the square of the one before); ``rate`` where
-    only one is known. Were the steps to shrink geometrically at that rate ``c``, the next ones
-    would sum to ``c / (1 - c)`` times the last. A trial settled by this prediction stops
-    without the next proposal, which :func:`_converged` would have tested: a chunk whose
-    trials all settle saves the normal equations and the solve of its last pass.
+    ``last_rate`` the same one step earlier (NaN where not known). The next rate ``c`` is
+    predicted as ``rate * min(1, rate / last_rate)``: the last rate where the convergence is
+    linear (the rates level off), smaller where it speeds up; where the last rate is already
+    about the square of the one before (within :data:`QUADRATIC_SLACK`: Gauss-Newton's
+    quadratic convergence on noise-free data, ``s_{k+1} = C s_k^2``) the next is predicted as
+    the square of the last, ``rate^2``, if that is smaller; ``rate`` where only one is known.
+    Were the steps to shrink geometrically at ``c``, the next ones would sum to ``c / (1 - c)``
+    times the last. A trial settled by this prediction stops without the next proposal, which
+    :func:`_converged` would have tested: a chunk whose trials all settle saves the normal
+    equations and the solve of its last pass. Noise-free on the paper's problem (+-1 mm /
+    +-0.05 rad, 15 poses, 2048 trials) every trial settles (without the quadratic branch 79 %,
+    too few for whole chunks), the frames within 2e-10 mm of the stop by the tests alone.
 
     The cost test (``ftol``, which decides on noisy data) is not predicted: there the
     convergence is linear at a rate that varies from step to step, and a geometric prediction
@@ -502,7 +511,8 @@ def _settled(scaled, rate, last_rate, u, rtol, atol):
     15 CDRA poses, 80 um / 1e-3 rad).
     """
     speed_up = jnp.where(last_rate > 0, jnp.minimum(1.0, rate / last_rate), 1.0)
-    c = rate * speed_up
+    quadratic = rate <= QUADRATIC_SLACK * last_rate * last_rate
+    c = rate * jnp.where(quadratic, jnp.minimum(speed_up, rate), speed_up)
     ok = c < 1
     c = jnp.where(ok, c, 0.0)
     return ok & (jnp.max(jnp.abs(scaled) / (atol + rtol * jnp.abs(u))) * c / (1 - c) < 1)
