@@ -218,6 +218,20 @@ module poses are the modules' own motions, the structural directions give ``~n e
 factorisation would drop too."""
 
 
+def _cholesky_of_symmetric(A: Array) -> Array:
+    """The lower Cholesky factor of a symmetric ``A (..., n, n)`` from one of its triangles.
+
+    ``jnp.linalg.cholesky`` first averages ``A`` with its transpose, which under XLA:CPU costs
+    two layout-changing copies of every matrix (LAPACK's factorisation takes column-major
+    input, the program's arrays are row-major). The transpose of a row-major matrix is its
+    column-major layout, a free relabelling, and of a symmetric matrix the same matrix: the
+    factor of ``A^T``, unsymmetrised, reads the other triangle of ``A`` without a copy. ``A``
+    here is symmetric to rounding (a Gram matrix plus symmetric terms), so the factor differs
+    from that of the average by rounding.
+    """
+    return jax.lax.linalg.cholesky(jnp.swapaxes(A, -1, -2), symmetrize_input=False)
+
+
 def null_space_solve(
     N: ArrayLike,
     g: ArrayLike,
@@ -290,7 +304,7 @@ def null_space_solve(
     A_aug = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k)) if k else A
     if damping is not None:
         A_aug = A_aug + jnp.asarray(damping, N.dtype) * s[:, None] * s[None, :]
-    L = jnp.linalg.cholesky(A_aug)
+    L = _cholesky_of_symmetric(A_aug)
 
     def solve(b):
         return jax.scipy.linalg.cho_solve((L, True), b)
