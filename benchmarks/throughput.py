@@ -22,8 +22,9 @@ optimistix, the reference);
 (d) ``scipy``: ``scipy.optimize.least_squares`` per trial on the stacked Eq. 7 residual.
 
 JAX solvers are timed on the whole batch: the first call (trace + compile + run) is reported
-apart from the steady state (median of ``--repeats`` calls); the compile time alone is measured
-with ``jit(...).lower(...).compile()``. The baselines are timed on a subset
+apart from the steady state (median of ``--repeats`` calls, the solvers called in turn, round
+after round, after all of them have compiled); the compile time alone is measured with
+``jit(...).lower(...).compile()``. The baselines are timed on a subset
 (``--baseline-trials``, default ``min(N, 200)``) split into 5 chunks; the per-trial time is the
 median over chunks. All of this happens in one process, side by side, so that a shared machine
 slows all of them alike. The sanity column is the largest difference of the recovered ``base``
@@ -146,26 +147,39 @@ def time_jax(
 
 def _steady(call: Callable, n: int, repeats: int, compile_s: float, first_s: float) -> dict:
     """Median wall time of ``repeats`` calls of ``call()`` (a batch of ``n`` trials), as the
-    result dict of :func:`time_jax` (``solution``: the last call's result)."""
-    times, cpu = [], []
-    sol = None
+    result dict of :func:`time_jax` (``solution``: the last call's result). ``repeats=0``: no
+    call; the dict holds ``call`` for :func:`steady_interleaved`."""
+    prepared = dict(compile_s=compile_s, first_call_s=first_s, call=call)
+    if repeats:
+        steady_interleaved({"one": prepared}, n, repeats)
+    return prepared
+
+
+def steady_interleaved(prepared: dict[str, dict], n: int, repeats: int) -> None:
+    """The steady state of several prepared solvers (:func:`_steady` with ``repeats=0``),
+    measured side by side: ``repeats`` rounds, each calling every solver once in turn, so that
+    a change of the machine's load during the run touches all of them alike. Each dict gets the
+    median wall time of its calls (``steady_s``, ``trials_per_s``), the median CPU time per
+    trial and its last ``solution``; ``call`` is removed."""
+    times: dict[str, list[float]] = {k: [] for k in prepared}
+    cpu: dict[str, list[float]] = {k: [] for k in prepared}
     for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        sol = call()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    steady = statistics.median(times)
-    return dict(
-        compile_s=compile_s,
-        first_call_s=first_s,
-        steady_s=steady,
-        trials_per_s=n / steady,
-        # CPU time of this process (all its threads) per trial: on a machine shared with other
-        # jobs a steadier measure of the work than the wall time.
-        cpu_us_per_trial=1e6 * statistics.median(cpu) / n,
-        all_s=times,
-        solution=sol,
-    )
+        for name, p in prepared.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            p["solution"] = p["call"]()
+            times[name].append(time.perf_counter() - t0)
+            cpu[name].append(time.process_time() - c0)
+    for name, p in prepared.items():
+        steady = statistics.median(times[name])
+        del p["call"]
+        p.update(
+            steady_s=steady,
+            trials_per_s=n / steady,
+            # CPU time of this process (all its threads) per trial: on a machine shared with
+            # other jobs a steadier measure of the work than the wall time.
+            cpu_us_per_trial=1e6 * statistics.median(cpu[name]) / n,
+            all_s=times[name],
+        )
 
 
 def time_jax_split(
@@ -282,26 +296,31 @@ def run(args) -> dict:
         ]
     if args.xla_defaults:
         runs += [(f"{name}_xla_defaults", fn, 0, kw) for name, fn, n, kw in list(runs) if n == 1]
+    # Compile every JAX solver first, then time their steady state side by side.
+    prepared: dict[str, dict] = {}
     for name, fn, n_dev, kw in runs:
         if _base(name) not in args.solvers:
             continue
         solve = lambda qq, TT, fn=fn, kw=kw: fn(arm, qq, TT, throw=False, **kw)  # noqa: E731
         if n_dev == 1:
-            r = time_jax(solve, q, T, args.repeats)
+            r = time_jax(solve, q, T, 0)
         elif n_dev == 0:  # one device, plain jax.jit: XLA's default compile options
-            r = time_jax(solve, q, T, args.repeats, jit=jax.jit)
+            r = time_jax(solve, q, T, 0, jit=jax.jit)
         else:
-            r = time_jax_split(solve, q, T, args.repeats, devices)
+            r = time_jax_split(solve, q, T, 0, devices)
+        prepared[name] = r
+        print(
+            f"# {name}: compile {r['compile_s']:.2f} s, first call {r['first_call_s']:.2f} s",
+            flush=True,
+        )
+    steady_interleaved(prepared, q.shape[0], args.repeats)
+    for name, r in prepared.items():
         sol = r.pop("solution")
         r["errors"] = np.asarray(sol.errors)
         r["converged"] = float(np.mean(np.asarray(sol.converged)))
         r["iterations_mean"] = float(np.mean(np.asarray(sol.iterations)))
         res[name] = r
-        print(
-            f"# {name}: compile {r['compile_s']:.2f} s, first call {r['first_call_s']:.2f} s, "
-            f"steady {r['steady_s']:.3f} s",
-            flush=True,
-        )
+        print(f"# {name}: steady {r['steady_s']:.3f} s", flush=True)
 
     frames0 = np.asarray(arm.frames, dtype=float)
     kinds = baselines.arm_kinds(arm)
@@ -477,7 +496,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--trials", type=int, default=10_000, help="batch size N of the JAX solvers")
     p.add_argument("--poses", type=int, default=15, help="calibration poses per trial (m)")
     p.add_argument("--baseline-trials", type=int, default=200, help="subset for numpy/scipy")
-    p.add_argument("--repeats", type=int, default=5, help="steady-state calls of JAX solvers")
+    p.add_argument(
+        "--repeats", type=int, default=5, help="steady-state rounds (one call of each JAX solver)"
+    )
     p.add_argument("--noise", action="store_true", help="add measurement noise")
     p.add_argument("--noise-pos-mm", type=float, default=0.08, help="position noise std (mm)")
     p.add_argument("--noise-rot-rad", type=float, default=1e-3, help="rotation noise std (rad)")
