@@ -80,6 +80,8 @@ its trials have converged, and those are solved again in chunks of their own.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -204,6 +206,22 @@ def calibrate_lm(
     )
 
 
+class _State(NamedTuple):
+    """A trial's state in :func:`_lm_solver`'s loop."""
+
+    k: Array  # steps tried
+    u: Array  # the scaled steps taken, summed (the step test's scale)
+    frames: Array
+    system: tuple  # |r~|^2, J^T J, J^T r~ where the trial stands
+    damping: tuple  # lambda, nu
+    bases: tuple  # N_0, the basis of SVD steps, their rank, fast steps apply
+    proposed: tuple  # the next step dX, scaled, its predicted gain
+    hist: tuple  # step norms, Eqs. 20-21 at every model
+    done: Array  # converged
+    ok: Array  # all finite so far
+    fresh: tuple  # the last step taken is new, the poses before the frames, r there, rates
+
+
 def _lm_solver(
     *, max_iterations, rtol, atol, rcond, weighted, null_modules=(), singular_values=False
 ):
@@ -223,7 +241,7 @@ def _lm_solver(
         nan = jnp.asarray(jnp.nan, dtype)
         zero = jnp.zeros((), dtype)
         eye = jnp.eye(n, dtype=dtype)
-        state = (
+        state = _State(
             jnp.asarray(0, jnp.int32),  # steps tried
             jnp.zeros(n, dtype),  # u: the scaled steps taken, summed (the step test's scale)
             frames0,  # the frames
@@ -240,7 +258,7 @@ def _lm_solver(
             jnp.asarray(False),  # converged
             finite_in,  # ok
             # the last step taken (or the nominal model) is new, the poses before the fixed
-            # frames and the residual there, the norm of the last scaled step taken
+            # frames and the residual there, the norm of the last scaled step taken and its rate
             (
                 jnp.asarray(False),
                 jnp.zeros(P.shape, dtype),
@@ -361,7 +379,7 @@ def _lm_solver(
             lambda a, b: jnp.where(trying & take, a, b), (size, rate), (last, last_rate)
         )
         finite = jnp.all(jnp.isfinite(frames)) & (jnp.isfinite(cost_t) | ~first)
-        return (
+        return _State(
             k + trying,
             u,
             frames,
@@ -398,18 +416,12 @@ def _lm_solver(
             (dX_next, scaled_next, predicted_next),
             proposed,
         )
-        return (
-            k,
-            u,
-            frames,
-            (cost, N, g),
-            (damping, nu),
-            bases,
-            proposed,
-            hist,
-            done | (live & converged),
-            ok,
-            (jnp.asarray(False), after, r, last),
+        return state._replace(
+            system=(cost, N, g),
+            bases=bases,
+            proposed=proposed,
+            done=done | (live & converged),
+            fresh=(jnp.asarray(False), after, r, last),
         )
 
     def finish(mode, state, data):
