@@ -17,9 +17,10 @@ the proposed step and decides on it, then proposes the next step from the normal
 it stands; the MINPACK-style tests of :func:`_converged` on that proposal stop the trial before
 another pass would evaluate it. A trial whose taken steps shrink fast enough for the steps still
 to come to pass the step test (:func:`_settled`, predicted from the last two rates) stops at the
-evaluation instead, and a chunk whose trials have all stopped skips the proposal of its last
-pass (:func:`.batching.chunked_loop`'s ``propose`` stage): on noise-free data its normal
-equations and solve, one of five (frames within 2e-10 mm of the stop without the prediction).
+evaluation instead, and a chunk in which no more than its stragglers still run skips the
+proposal of that pass (:func:`.batching.chunked_loop`'s ``propose`` stage; the few are solved
+again in chunks of their own, as stragglers are): on noise-free data the normal equations and
+solve of most chunks' last pass (frames within 2e-10 mm of the stop without the prediction).
 
 Scaling. The damping's metric ``N_0`` is ``J^T J`` of the nominal model (Jacobi-scaled, as the
 whole system): in the coordinates that whiten the nominal Jacobian it is the identity, so that
@@ -517,8 +518,8 @@ def _settled(scaled, rate, last_rate, u, rtol, atol):
     Were the steps to shrink geometrically at ``c``, the next ones would sum to ``c / (1 - c)``
     times the last; the trial settles when that is below :data:`SETTLE_MARGIN` of the step
     test's tolerance. A trial settled by this prediction stops without the next proposal, which
-    :func:`_converged` would have tested: a chunk whose trials all settle saves the normal
-    equations and the solve of its last pass. Noise-free on the paper's problem (+-1 mm /
+    :func:`_converged` would have tested: a chunk in which all but its stragglers settle saves
+    the normal equations and the solve of its last pass. Noise-free on the paper's problem (+-1 mm /
     +-0.05 rad, 15 poses, 512 trials) 92 % of the trials settle (79 % without the quadratic
     branch even with a margin of 1) and the solve takes 3-5 % less time than without the
     prediction; held-out tool positions end within 2.8e-9 mm of the exact least-squares minimum
