@@ -94,6 +94,7 @@ from .batching import chunked_loop
 from .linear import (
     RESOLVED_PIVOT,
     STRUCTURAL_TOL,
+    cholesky_of_symmetric,
     default_rcond,
     normal_equations_apply,
     null_space_solve,
@@ -318,7 +319,7 @@ def _lm_solver(
         def in_basis():
             used = jnp.any(basis != 0, axis=0)
             A = basis.T @ ((N + damping * N0) @ basis) + jnp.diag(jnp.where(used, 0.0, 1.0))
-            du = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), basis.T @ g)
+            du = jax.scipy.linalg.cho_solve((cholesky_of_symmetric(A), True), basis.T @ g)
             x = -basis @ du
             return off_null_space(x, Z), resolved
 

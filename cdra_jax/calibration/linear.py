@@ -186,7 +186,7 @@ def _range_factor(N: Array, cutoff: float) -> tuple[Array, Array, Array, Array]:
     L, rank = pivoted_cholesky(N, cutoff)
     kept = jnp.arange(N.shape[-1]) < rank
     G = L.T @ L + jnp.diag(jnp.where(kept, 0.0, 1.0).astype(N.dtype))
-    C = jnp.linalg.cholesky(G)
+    C = cholesky_of_symmetric(G)
     # Column j of L peaks at the pivot row with sqrt(pivot_j) (|S_ij| <= sqrt(S_ii S_jj)).
     pivots = jnp.max(L * L, axis=0) / jnp.max(jnp.diagonal(N))
     smallest = jnp.min(jnp.where(kept, pivots, jnp.inf))
@@ -218,7 +218,7 @@ module poses are the modules' own motions, the structural directions give ``~n e
 factorisation would drop too."""
 
 
-def _cholesky_of_symmetric(A: Array) -> Array:
+def cholesky_of_symmetric(A: Array) -> Array:
     """The lower Cholesky factor of a symmetric ``A (..., n, n)`` from one of its triangles.
 
     ``jnp.linalg.cholesky`` first averages ``A`` with its transpose, which under XLA:CPU costs
@@ -304,7 +304,7 @@ def null_space_solve(
     A_aug = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k)) if k else A
     if damping is not None:
         A_aug = A_aug + jnp.asarray(damping, N.dtype) * s[:, None] * s[None, :]
-    L = _cholesky_of_symmetric(A_aug)
+    L = cholesky_of_symmetric(A_aug)
 
     def solve(b):
         return jax.scipy.linalg.cho_solve((L, True), b)
