@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from _devices import run_on_two_cpu_devices
 
-from cdra_jax.calibration.batching import batched_like, chunked_loop, chunked_vmap, two_pass
+from cdra_jax.calibration.batching import batched_like, chunked_vmap, two_pass
 
 
 def _newton_sqrt(a, x0, tol):
@@ -91,64 +91,6 @@ def test_chunked_vmap_second_pass_under_vmap():
     np.testing.assert_array_equal(jax.jit(jax.vmap(f))(x), expected)
     np.testing.assert_array_equal(jax.vmap(jax.vmap(f))(x.reshape(1, 11))[0], expected)
     assert f(x[3]) == 30.0 and f(x[4]) == 4.0
-
-
-def _newton_sqrt_in_two_stages():
-    """Newton's iteration for sqrt(a) as a ``chunked_loop`` with a ``propose`` stage: ``body``
-    evaluates the proposed iterate and stops the trial once it is accurate (as a solver that
-    decides at its evaluation), ``propose`` computes the next iterate and counts the proposals
-    that the trial's lane computed."""
-
-    def init(mode, a):
-        one = jnp.ones_like(a)
-        return (jnp.asarray(0), one, one, jnp.asarray(0), jnp.asarray(False)), a
-
-    def running(state):
-        k, _, _, _, done = state
-        return (k < 100) & ~done
-
-    def body(it, mode, step, state, a):
-        k, x, proposal, proposals, done = state
-        moving = step & running(state) & (it > 0)
-        x = jnp.where(moving, proposal, x)
-        done = done | (moving & (jnp.abs(x * x - a) <= 1e-12 * a))
-        return k + moving, x, proposal, proposals, done
-
-    def propose(it, mode, state, a):
-        k, x, _, proposals, done = state
-        return k, x, 0.5 * (x + a / x), proposals + 1, done
-
-    def finish(mode, state, a):
-        return state, jnp.zeros((), jnp.int32)
-
-    return chunked_loop(
-        init, body, running, finish, chunk_size=4, passes=2, stragglers=8, propose=propose
-    )
-
-
-def test_chunked_loop_propose_stage_runs_only_where_a_trial_goes_on():
-    """A chunk computes the proposals of a pass only while one of its trials still runs after
-    the pass's ``body``: its last pass (all trials stopped at their evaluation) proposes
-    nothing. Batched results equal the unbatched ones."""
-
-    def solve(a):
-        k, x, _, proposals, _ = _newton_sqrt_in_two_stages()(a)
-        return k, x, proposals
-
-    a = jnp.asarray([4.0, 4.0, 4.0, 4.0, 2.0, 1e6, 3.0, 9.0])
-    k, x, proposals = jax.jit(jax.vmap(solve))(a)
-    np.testing.assert_allclose(x, np.sqrt(np.asarray(a)), rtol=1e-6)
-    for i in range(a.shape[0]):
-        one = jax.jit(solve)(a[i])
-        assert float(one[1]) == float(x[i]) and int(one[0]) == int(k[i])
-        assert int(one[2]) == int(one[0])  # alone: one proposal per step taken
-    # The first chunk's trials are equal: each pass proposes once per lane, and the pass in
-    # which they stop proposes nothing (one proposal fewer than the passes that evaluated).
-    assert len(set(np.asarray(proposals[:4]).tolist())) == 1
-    assert int(proposals[0]) == int(k[0])
-    # The second chunk runs as long as its slowest trial (1e6): every lane computed its
-    # proposals, more than the quick trials' own steps.
-    assert int(proposals[4]) == int(proposals[5]) > int(k[4])
 
 
 def test_empty_batches_give_empty_outputs():

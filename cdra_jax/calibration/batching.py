@@ -101,7 +101,6 @@ def chunked_loop(
     chunk_size: int,
     passes: int,
     stragglers: int,
-    propose: Callable | None = None,
 ) -> Callable:
     """An iterative per-trial solver whose ``vmap`` runs the iteration chunk by chunk, with the
     loop written at the level of the chunk.
@@ -116,12 +115,7 @@ def chunked_loop(
       a pass with ``step`` false, in which the body is to evaluate the final state only;
     * ``running(state) -> bool``: the trial still steps;
     * ``finish(mode, state, data) -> (out, want)``: the result and the later mode (int32; 0:
-      none) that must solve the trial again;
-    * optionally ``propose(it, mode, state, data) -> state``: a second stage of each pass, run
-      after ``body`` only where some trial of the chunk still runs (more than the stragglers'
-      limit below) or in the first pass (``it == 0``): the work that only a trial going on
-      needs (a solver that decides at ``body`` that a trial has converged saves the next step's
-      solve of the chunk's last pass).
+      none) that must solve the trial again.
 
     The returned function takes ``*args`` (positional array pytrees) of one trial and returns
     ``out``. A chunk runs its loop while more than ``limit`` of its trials are running: in mode
@@ -143,9 +137,6 @@ def chunked_loop(
         body_r, _ = _traced_once(body, scalar, scalar, flag, state_s, data_s)
         running_r, _ = _traced_once(running, state_s)
         finish_r, (out_s, _) = _traced_once(finish, scalar, state_s, data_s)
-        propose_r = None
-        if propose is not None:
-            propose_r, _ = _traced_once(propose, scalar, scalar, state_s, data_s)
 
         def chunk_fn(mode, *chunk):
             state, data = jax.vmap(init_r, in_axes=(None,) + (0,) * len(chunk))(mode, *chunk)
@@ -156,14 +147,7 @@ def chunked_loop(
             def loop(c):
                 it, state, _ = c
                 step = jnp.sum(jax.vmap(running_r)(state)) > limit
-                state = step_all(it, mode, step, state, data)
-                if propose_r is not None:
-                    go_on = (jnp.sum(jax.vmap(running_r)(state)) > limit) | (it == 0)
-                    propose_all = jax.vmap(propose_r, in_axes=(None, None, 0, 0))
-                    state = jax.lax.cond(
-                        go_on, lambda s: propose_all(it, mode, s, data), lambda s: s, state
-                    )
-                return it + 1, state, step
+                return it + 1, step_all(it, mode, step, state, data), step
 
             start = (jnp.asarray(0, jnp.int32), state, jnp.asarray(True))
             _, state, _ = jax.lax.while_loop(lambda c: c[2], loop, start)
@@ -178,15 +162,7 @@ def chunked_loop(
             def loop(c):
                 it, state, _ = c
                 step = running_r(state)
-                state = body_r(it, mode, step, state, data)
-                if propose_r is not None:
-                    state = jax.lax.cond(
-                        running_r(state) | (it == 0),
-                        lambda s: propose_r(it, mode, s, data),
-                        lambda s: s,
-                        state,
-                    )
-                return it + 1, state, step
+                return it + 1, body_r(it, mode, step, state, data), step
 
             start = (jnp.asarray(0, jnp.int32), state, jnp.asarray(True))
             _, state, _ = jax.lax.while_loop(lambda c: c[2], loop, start)

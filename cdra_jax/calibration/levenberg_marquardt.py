@@ -13,14 +13,9 @@ non-linear least squares problems*, 2004, Alg. 3.16): the step solves ``(J^T J +
 ``nu`` (doubling at each refusal in a row). ``lambda`` starts at ``tau = 1e-6``
 (:data:`INITIAL_DAMPING`), their choice for a start believed close to the solution, as the
 nominal model is: the first step is a full Gauss-Newton step. Each pass evaluates the model at
-the proposed step and decides on it, then proposes the next step from the normal equations where
+the proposed step, decides on it, and proposes the next step from the normal equations where
 it stands; the MINPACK-style tests of :func:`_converged` on that proposal stop the trial before
-another pass would evaluate it. A trial whose taken steps shrink fast enough for the steps still
-to come to pass the step test (:func:`_settled`, predicted from the last two rates) stops at the
-evaluation instead, and a chunk in which no more than its stragglers still run skips the
-proposal of that pass (:func:`.batching.chunked_loop`'s ``propose`` stage; the few are solved
-again in chunks of their own, as stragglers are): on noise-free data the normal equations and
-solve of most chunks' last pass (frames within 2e-10 mm of the stop without the prediction).
+another pass would evaluate it.
 
 Scaling. The damping's metric ``N_0`` is ``J^T J`` of the nominal model (Jacobi-scaled, as the
 whole system): in the coordinates that whiten the nominal Jacobian it is the identity, so that
@@ -80,8 +75,6 @@ its trials have converged, and those are solved again in chunks of their own.
 """
 
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -208,22 +201,6 @@ def calibrate_lm(
     )
 
 
-class _State(NamedTuple):
-    """A trial's state in :func:`_lm_solver`'s loop."""
-
-    k: Array  # steps tried
-    u: Array  # the scaled steps taken, summed (the step test's scale)
-    frames: Array
-    system: tuple  # |r~|^2, J^T J, J^T r~ where the trial stands
-    damping: tuple  # lambda, nu
-    bases: tuple  # N_0, the basis of SVD steps, their rank, fast steps apply
-    proposed: tuple  # the next step dX, scaled, its predicted gain
-    hist: tuple  # step norms, Eqs. 20-21 at every model
-    done: Array  # converged
-    ok: Array  # all finite so far
-    fresh: tuple  # the last step taken is new, the poses before the frames, r there, rates
-
-
 def _lm_solver(
     *, max_iterations, rtol, atol, rcond, weighted, null_modules=(), singular_values=False
 ):
@@ -243,7 +220,7 @@ def _lm_solver(
         nan = jnp.asarray(jnp.nan, dtype)
         zero = jnp.zeros((), dtype)
         eye = jnp.eye(n, dtype=dtype)
-        state = _State(
+        state = (
             jnp.asarray(0, jnp.int32),  # steps tried
             jnp.zeros(n, dtype),  # u: the scaled steps taken, summed (the step test's scale)
             frames0,  # the frames
@@ -259,19 +236,11 @@ def _lm_solver(
             ),
             jnp.asarray(False),  # converged
             finite_in,  # ok
-            # the last step taken (or the nominal model) is new, the poses before the fixed
-            # frames and the residual there, the norm of the last scaled step taken and its rate
-            (
-                jnp.asarray(False),
-                jnp.zeros(P.shape, dtype),
-                jnp.zeros((6, T.shape[-1]), dtype),
-                (nan, nan),  # none yet: no prediction after the first step
-            ),
         )
         return state, (frames0, P, T, xi, noise)
 
     def running(state):
-        k, *_, (_, _, _, resolved), _, _, done, ok, _ = state
+        k, *_, (_, _, _, resolved), _, _, done, ok = state
         return (k < max_iterations) & ~done & ok & resolved
 
     def svd_steps(mode, T, n):
@@ -326,26 +295,26 @@ def _lm_solver(
         return jax.lax.cond(svd_steps(mode, T, n), in_basis, fast)
 
     def body(it, mode, step, state, data):
-        """The first stage of a pass: evaluate the proposed step where the trial still runs and
-        decide on it; the chunk's first pass (``it == 0``, always taken) evaluates the nominal
-        model instead (``it``, ``mode`` and ``step`` are the chunk's: real branches; a later
-        pass without a step has nothing left to evaluate)."""
-        return jax.lax.cond(step | (it == 0), lambda: _evaluate(it, state, data), lambda: state)
+        """One damped step where the trial still runs; the chunk's first pass (``it == 0``,
+        always taken) evaluates the nominal model instead and tests the pose set there (``it``,
+        ``mode`` and ``step`` are the chunk's: real branches; a later pass without a step has
+        nothing left to evaluate)."""
+        return jax.lax.cond(step | (it == 0), lambda: _step(it, mode, state, data), lambda: state)
 
-    def _evaluate(it, state, data):
-        k, u, frames, (cost, N, g), (damping, nu), bases, proposed, hist, done, ok, fresh = state
+    def _step(it, mode, state, data):
+        k, u, frames, (cost, N, g), (damping, nu), bases, proposed, hist, done, ok = state
         steps, dps, dRs = hist
         dX, scaled, predicted = proposed
-        _, P, T, _, noise = data
-        _, after, r, (last, last_rate) = fresh
+        frames0, P, T, xi, noise = data
         first = it == 0
         trying = running(state) & ~first
-        # The model at the proposed step (the first pass: the nominal model) and whether the
-        # step is taken.
+        # The model at the proposed step (the first pass: the nominal model), its normal
+        # equations, and whether the step is taken.
         frames_t = kernels.step_frames(dX, frames)
-        tool, after_t = kernels.chain(frames_t, P)
-        r_t, dp, dR = kernels.residual_and_metrics(T, tool)
-        Yw = r_t if noise is None else kernels.whiten(r_t, T, noise)
+        tool, after = kernels.chain(frames_t, P)
+        r, dp, dR = kernels.residual_and_metrics(T, tool)
+        N_t, g_t, Yw = kernels.lm_normal_equations(after, r, T, noise)
+        bases = jax.lax.cond(first, lambda: nominal(mode, N_t, after, T, noise), lambda: bases)
         cost_t = jnp.sum(Yw * Yw)
         rho = (0.5 * (cost - cost_t)) / predicted
         take = first | (trying & (rho > 0) & jnp.isfinite(cost_t))
@@ -366,48 +335,12 @@ def _lm_solver(
             jnp.where(live, dRs.at[at].set(jnp.where(take, dR, dRs[k])), dRs),
         )
         u = pick(u + scaled, u)
-        frames, cost, after, r = pick((frames_t, cost_t, after_t, r_t), (frames, cost, after, r))
+        frames, (cost, N, g) = pick((frames_t, (cost_t, N_t, g_t)), (frames, (cost, N, g)))
         damping, nu = jax.tree.map(
             lambda a, b: jnp.where(live, a, b), (damping_t, nu_t), (damping, nu)
         )
-        # The steps still to come, predicted from the last two taken ones: a trial whose
-        # remaining steps would pass the tests of :func:`_converged` stops here, without the
-        # next proposal (:func:`_settled`).
-        size = jnp.linalg.norm(scaled)
-        rate = size / last
-        settled = _settled(scaled, rate, last_rate, u, rtol, atol)
-        settled = trying & take & settled
-        last, last_rate = jax.tree.map(
-            lambda a, b: jnp.where(trying & take, a, b), (size, rate), (last, last_rate)
-        )
-        finite = jnp.all(jnp.isfinite(frames)) & (jnp.isfinite(cost_t) | ~first)
-        return _State(
-            k + trying,
-            u,
-            frames,
-            (cost, N, g),
-            (damping, nu),
-            bases,
-            proposed,
-            hist,
-            done | settled,
-            ok & finite,
-            (take, after, r, (last, last_rate)),
-        )
-
-    def propose(it, mode, state, data):
-        """The second stage of a pass, for the chunks where a trial goes on: the normal
-        equations where the trial stands (where its last step was taken) and the next step,
-        with the stopping tests on it: a trial that has converged stops before the pass that
-        would evaluate it."""
-        k, u, frames, (cost, N, g), (damping, nu), bases, proposed, hist, done, ok, fresh = state
-        _, _, T, xi, noise = data
-        taken, after, r, last = fresh
-        first = it == 0
-        live = running(state) | first
-        N_t, g_t, _ = kernels.lm_normal_equations(after, r, T, noise)
-        N, g = jax.tree.map(lambda a, b: jnp.where(taken, a, b), (N_t, g_t), (N, g))
-        bases = jax.lax.cond(first, lambda: nominal(mode, N, after, T, noise), lambda: bases)
+        # The next step, proposed now, and the stopping tests on it: a trial that has
+        # converged stops before the pass that would evaluate it.
         dX_next, resolved = proposal(mode, first, frames, N, g, damping, bases, xi, T)
         bases = bases[:3] + (resolved,)
         predicted_next = -(jnp.dot(g, dX_next) + 0.5 * jnp.dot(dX_next, N @ dX_next))
@@ -418,18 +351,24 @@ def _lm_solver(
             (dX_next, scaled_next, predicted_next),
             proposed,
         )
-        return state._replace(
-            system=(cost, N, g),
-            bases=bases,
-            proposed=proposed,
-            done=done | (live & converged),
-            fresh=(jnp.asarray(False), after, r, last),
+        finite = jnp.all(jnp.isfinite(frames)) & (jnp.isfinite(cost_t) | ~first)
+        return (
+            k + trying,
+            u,
+            frames,
+            (cost, N, g),
+            (damping, nu),
+            bases,
+            proposed,
+            hist,
+            done | (live & converged),
+            ok & finite,
         )
 
     def finish(mode, state, data):
         """The solution of one trial, and whether it is to be redone with SVD steps (where the
         fast steps are not resolved, or their rank is not that of the singular values)."""
-        k, _, frames, (cost, _, _), _, (_, _, step_rank, resolved), _, hist, done, ok, _ = state
+        k, _, frames, (cost, _, _), _, (_, _, step_rank, resolved), _, hist, done, ok = state
         steps, dps, dRs = hist
         frames0, P, T, _, noise = data
         dtype = T.dtype
@@ -466,7 +405,6 @@ def _lm_solver(
         chunk_size=CHUNK_SIZE,
         passes=3,
         stragglers=STRAGGLERS,
-        propose=propose,
     )
 
 
@@ -494,52 +432,6 @@ def _identifiable_basis(lin: kernels.Linearisation, rcond: float | None) -> Arra
     keep = s > rcond * s[..., :1]
     scale = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
     return V * scale
-
-
-SETTLE_MARGIN = 0.1
-"""A trial settles once the steps still to come are predicted below this fraction of the step
-test's tolerance (see :func:`_settled`; the paper solver's ``PREDICTIVE_MARGIN``)."""
-
-QUADRATIC_SLACK = 4.0
-"""How far below the square of the rate before it a step's rate may lie for the convergence to
-count as quadratic (see :func:`_settled`)."""
-
-
-def _settled(scaled, rate, last_rate, u, rtol, atol):
-    """Whether the steps after the one just taken (``scaled``, in the units of ``r~``) are
-    predicted to pass the step test of :func:`_converged` (``xtol``).
-
-    ``rate`` is the norm of the scaled step just taken over that of the step taken before,
-    ``last_rate`` the same one step earlier (NaN where not known). The next rate ``c`` is
-    predicted as ``rate * min(1, rate / last_rate)``: the last rate where the convergence is
-    linear (the rates level off), smaller where it speeds up; where the last rate is already
-    about the square of the one before (within :data:`QUADRATIC_SLACK`: Gauss-Newton's
-    quadratic convergence on noise-free data, ``s_{k+1} = C s_k^2``) the next is predicted as
-    the square of the last, ``rate^2``, if that is smaller; ``rate`` where only one is known.
-    Were the steps to shrink geometrically at ``c``, the next ones would sum to ``c / (1 - c)``
-    times the last; the trial settles when that is below :data:`SETTLE_MARGIN` of the step
-    test's tolerance. A trial settled by this prediction stops without the next proposal, which
-    :func:`_converged` would have tested: a chunk in which all but its stragglers settle saves
-    the normal equations and the solve of its last pass. Noise-free on the paper's problem (+-1 mm /
-    +-0.05 rad, 15 poses, 512 trials) 92 % of the trials settle (79 % without the quadratic
-    branch even with a margin of 1) and the solve takes 3-5 % less time than without the
-    prediction; held-out tool positions end within 2.8e-9 mm of the exact least-squares minimum
-    (4,096 trials; 2.5e-9 mm stopping by the tests alone). A margin of 1 settles every trial and
-    saves 7-9 % more, but ends up to 7.2e-9 mm from the minimum: the damping keeps the weakly
-    determined directions converging linearly, which the quadratic prediction does not see.
-
-    The cost test (``ftol``, which decides on noisy data) is not predicted: there the
-    convergence is linear at a rate that varies from step to step, and a geometric prediction
-    stopped unweighted noisy solves up to 6e-5 mm from where the tests stop them (2048 trials,
-    15 CDRA poses, 80 um / 1e-3 rad).
-    """
-    speed_up = jnp.where(last_rate > 0, jnp.minimum(1.0, rate / last_rate), 1.0)
-    quadratic = rate <= QUADRATIC_SLACK * last_rate * last_rate
-    c = rate * jnp.where(quadratic, jnp.minimum(speed_up, rate), speed_up)
-    ok = c < 1
-    c = jnp.where(ok, c, 0.0)
-    tail = jnp.max(jnp.abs(scaled) / (atol + rtol * jnp.abs(u))) * c / (1 - c)
-    return ok & (tail < SETTLE_MARGIN)
 
 
 def _converged(step, u, predicted, cost, rtol, atol):
