@@ -85,8 +85,8 @@ def _free_compiled_programs_when_memory_is_high(request):
     :data:`_RSS_TEST_LIMIT_BYTES`: modules of random arms or imported arms compile programs that
     no later test reuses (one such module otherwise reached 3.4 GB), and the 3 GB budget of the
     suite is per run, not per module. Not within a module marked ``keep_programs``, whose tests
-    share their programs (the diagnosis': the candidates' features of one arm, 12 s to compile
-    and 5 s to trace, about 400 MB for the whole module)."""
+    share their programs (the diagnosis': the candidates' features of one arm, about 5 s to
+    compile and 1 s to trace, about 400 MB for the whole module)."""
     yield
     if request.node.get_closest_marker("keep_programs") is None:
         _drop_compiled_programs_above(_RSS_TEST_LIMIT_BYTES, _RSS_REGROWTH_BYTES)

@@ -21,8 +21,11 @@ so that one compiled program evaluates (and ``jax.jacfwd`` differentiates) all o
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import contextlib
+import contextvars
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -120,6 +123,46 @@ def corrected_tool_pose(arm: Arm, q: ArrayLike, features: Features, theta: Array
     p = frames[..., :3, 3] + defl[..., :3]
     tool, _ = chain(lie.make_pose(R, p), poses)
     return tool
+
+
+_T = TypeVar("_T")
+
+_SHARED_TERMS: contextvars.ContextVar[dict[tuple, tuple[tuple, Any]] | None] = (
+    contextvars.ContextVar("cdra_jax_shared_terms", default=None)
+)
+
+
+@contextlib.contextmanager
+def sharing_terms() -> Iterator[None]:
+    """Within this block, :func:`shared_term` evaluates each function once per arguments.
+
+    The candidates of one diagnosis need the same intermediate terms (the gravity loads, each
+    module's holding tensions, the module base frames) for many forms; evaluating all
+    candidates inside this block (as :func:`cdra_jax.diagnosis.model.all_features` does, in
+    one trace) puts each term into the compiled program once instead of once per form, which
+    shortens its compilation. The memo lives only as long as the block.
+    """
+    token = _SHARED_TERMS.set({})
+    try:
+        yield
+    finally:
+        _SHARED_TERMS.reset(token)
+
+
+def shared_term(fn: Callable[..., _T], *args: Any) -> _T:
+    """``fn(*args)``, evaluated once per ``(fn, args)`` inside :func:`sharing_terms`.
+
+    Arguments are matched by identity (arrays, arms, auxiliary mappings) or by value (``int``,
+    ``str``); the memo keeps the arguments alive, so an identity is never reused within the
+    block. Outside the block this is a plain call.
+    """
+    memo = _SHARED_TERMS.get()
+    if memo is None:
+        return fn(*args)
+    key = (fn, *(a if isinstance(a, int | str) else id(a) for a in args))
+    if key not in memo:
+        memo[key] = (args, fn(*args))
+    return memo[key][1]
 
 
 ROUNDING = 1e-12

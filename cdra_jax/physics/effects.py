@@ -52,7 +52,7 @@ from ..modules.statics import (
     world_frames,
 )
 from ..modules.tension import structure_matrix
-from .base import Aux, Effect, Features, ParameterSpec
+from .base import Aux, Effect, Features, ParameterSpec, shared_term
 from .loads import (
     MomentTerm,
     bending_deflection,
@@ -88,6 +88,32 @@ def _payload(aux: Aux, q: Array) -> Array:
     if PAYLOAD in aux:
         return jnp.asarray(aux[PAYLOAD], q.dtype)
     return jnp.zeros(q.shape[:-1], q.dtype)
+
+
+def _gravity_loads(arm: Arm, q: Array, aux: Aux) -> Array:
+    """Gravity loads ``(m, dof)`` of every module at the recorded payload (shared by the
+    candidates of one diagnosis, :func:`.base.shared_term`)."""
+    return gravity_loads(arm, q, _payload(aux, q))
+
+
+def _gravity_torques(arm: Arm, q: Array, aux: Aux) -> Array:
+    """Gravity torques ``(m, K, 3)`` N mm about each module centre, base frame (shared)."""
+    return gravity_torques(arm, q, _payload(aux, q))
+
+
+def _holding_tensions(arm: Arm, q: Array, aux: Aux, i: int) -> Array:
+    """Tensions ``(m, n)`` N holding module ``i`` against its gravity load, minimum norm above
+    the pretension floor (:func:`cdra_jax.modules.statics.holding_tensions` for this module
+    only; shared by the forms that use them)."""
+    mod = arm.modules[i]
+    load = arm.split_state(shared_term(_gravity_loads, arm, q, aux))[i]
+    A = structure_matrix(mod, arm.split_state(q)[i])  # (m, d, n)
+    return distribute_tensions(A, -load, module_floor(mod)).tensions
+
+
+def _length_jacobian(arm: Arm, q: Array, i: int) -> Array:
+    """Module ``i``'s cable-length Jacobian ``(m, n, dof_i)`` at the states (shared)."""
+    return length_jacobian(arm.modules[i], arm.split_state(q)[i])
 
 
 def _distal_mass(arm: Arm, i: int) -> float:
@@ -313,7 +339,7 @@ class JointCompliance(ModuleEffect):
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
         if self.lumped:
-            before = _module_bases(arm, q)[:, i, :3, :3]
+            before = shared_term(_module_bases, arm, q)[:, i, :3, :3]
             cols = jnp.einsum(
                 "mji,mjn->min", before, moment_torques(arm, q, self.terms(arm, location))
             )
@@ -322,7 +348,7 @@ class JointCompliance(ModuleEffect):
                 along = jnp.einsum("min,i->mn", cols, a)[:, None, :] * a[:, None]
                 cols = along if self.form == "lumped_axial" else cols - along
         else:
-            tau = gravity_torques(arm, q, _payload(aux, q))[:, i, :]  # (m, 3) N mm, base frame
+            tau = shared_term(_gravity_torques, arm, q, aux)[:, i, :]  # (m, 3) N mm, base frame
             if self.form in ("per_axis", "per_axis_quadratic"):
                 R = mod.pose(arm.split_state(q)[i])[:, :3, :3]
                 local = jnp.einsum("mji,mj->mi", R, tau)  # torque in the platform frame
@@ -389,7 +415,7 @@ class _CableEffect(ModuleEffect):
         ``i``, mapped to its state by least squares ``J^+ dl``: one column, or one per cable
         for the ``"per_cable"`` form."""
         mod = arm.modules[i]
-        J = length_jacobian(mod, arm.split_state(q)[i])  # (m, n, dof)
+        J = shared_term(_length_jacobian, arm, q, i)  # (m, n, dof)
         if getattr(self, "form", None) == "per_cable":
             step = _lstsq_columns(J, dl[..., None] * jnp.eye(mod.n_cables, dtype=q.dtype))
         else:
@@ -483,18 +509,15 @@ class CableElasticity(_CableEffect):
 
     def features(self, arm, q, aux, location):
         i, mod = self.module(arm, location)
-        qi = arm.split_state(q)[i]
-        load = arm.split_state(gravity_loads(arm, q, _payload(aux, q)))[i]
-        A = structure_matrix(mod, qi)  # (m, d, n)
         if self.form == "pretension_share":
             # f + A^+ (-load): every cable at the pretension plus the min-norm load share
+            load = arm.split_state(shared_term(_gravity_loads, arm, q, aux))[i]
+            A = structure_matrix(mod, arm.split_state(q)[i])  # (m, d, n)
             AAt = jnp.einsum("mdn,men->mde", A, A)
             share = jnp.einsum("mdn,md->mn", A, jnp.linalg.solve(AAt, -load[..., None])[..., 0])
             t = module_floor(mod) + share
         else:
-            # The tensions holding the arm (cdra_jax.modules.statics.holding_tensions), for
-            # this module only: min-norm tensions above the pretension floor.
-            t = distribute_tensions(A, -load, module_floor(mod)).tensions  # (m, n) N
+            t = shared_term(_holding_tensions, arm, q, aux, i)  # (m, n) N
         if self.form == "quadratic":
             t = t * t
         elif self.form.startswith("power"):
@@ -769,7 +792,7 @@ class DrumPeriodicError(_CableEffect):
         # column (j, k, fn): the wave on cable j only
         e = jnp.einsum("mjkf,jl->mljkf", waves, jnp.eye(n, dtype=q.dtype))
         e = e.reshape(q.shape[0], n, n * h * 2)
-        step = _lstsq_columns(length_jacobian(mod, qi), e)
+        step = _lstsq_columns(shared_term(_length_jacobian, arm, q, i), e)
         return _module_step_features(arm, q, i, step)
 
     def coordinate(self, arm, q, location):
