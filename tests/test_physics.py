@@ -4,6 +4,7 @@ independent oracles (cable forward kinematics, the textbook cantilever)."""
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ from cdra_jax.physics import (
     corrected_tool_pose,
     effect,
 )
+from cdra_jax.physics.base import shared_term, sharing_terms
 
 
 def test_vocabulary_is_the_design_table():
@@ -117,6 +119,43 @@ def test_single_candidate_pure_function_matches_the_stacked_features():
     np.testing.assert_allclose(T, corrected_tool_pose(b.actual, b.q, b.F, theta), atol=1e-9)
     with pytest.raises(ValueError, match="theta must have shape"):
         corrected_tool_pose(b.actual, b.q, b.F, jnp.zeros(3))
+
+
+def test_shared_terms_are_evaluated_once_per_arguments_and_only_inside_the_block():
+    calls = []
+
+    def term(x, i):
+        calls.append(i)
+        return x * i
+
+    x = np.ones(3)
+    shared_term(term, x, 2)
+    shared_term(term, x, 2)
+    assert calls == [2, 2]  # outside the block: a plain call
+    with sharing_terms():
+        a = shared_term(term, x, 2)
+        assert shared_term(term, x, 2) is a  # same function and arguments: evaluated once
+        shared_term(term, x, 3)
+        shared_term(term, x.copy(), 2)  # another array (identity, not value)
+    assert calls == [2, 2, 2, 3, 2]
+    with sharing_terms():
+        shared_term(term, x, 2)  # a new block starts empty
+    assert calls[-1] == 2 and len(calls) == 6
+
+
+def test_features_in_one_program_equal_each_candidate_alone():
+    """The stacked features (their shared terms evaluated once) equal each candidate's own
+    features, for the effects whose forms share terms."""
+    b = base()
+    for c in (
+        find("cable_elasticity", "wrist", "holding"),
+        find("cable_elasticity", "shoulder", "per_cable"),
+        find("joint_compliance", "elbow"),
+    ):
+        alone = c.features(b.actual, b.q, b.aux)
+        cols = b.cols[c]
+        for got, want in zip(jax.tree.leaves(alone), jax.tree.leaves(b.F), strict=True):
+            np.testing.assert_allclose(got, want[..., cols], rtol=1e-12, atol=1e-15)
 
 
 def _replace_modules(arm: Arm, **changes) -> Arm:
