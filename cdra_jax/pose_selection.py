@@ -80,7 +80,7 @@ from jax.typing import ArrayLike
 
 from . import lie
 from .arm import Arm, chain, module_poses
-from .calibration.linear import default_rcond
+from .calibration.linear import cholesky_of_symmetric, default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, tool_points, whitening
 from .calibration.validation import MIN_POSES, require_finite_states
 from .compilation import filter_jit, jit
@@ -193,9 +193,11 @@ def _greedy(B: Array, m: int, eps: Array) -> Array:
     eye_k = jnp.eye(B.shape[1], dtype=B.dtype)
 
     def gains(M):
-        Z = _chol_solve_blocks(jnp.linalg.cholesky(M), B)  # (N, r, k)
+        Z = _chol_solve_blocks(cholesky_of_symmetric(M), B)  # (N, r, k)
         C = eye_k + jnp.einsum("nri,nrj->nij", Z, Z)
-        return 2.0 * jnp.sum(jnp.log(jnp.diagonal(jnp.linalg.cholesky(C), axis1=-2, axis2=-1)), -1)
+        return 2.0 * jnp.sum(
+            jnp.log(jnp.diagonal(cholesky_of_symmetric(C), axis1=-2, axis2=-1)), -1
+        )
 
     return _add_while_best(gains, B, m, eps)
 
@@ -230,7 +232,7 @@ def _exchange(B: Array, idx: Array, eps: Array, max_swaps: int, tol: float) -> t
 
     def best_swap(idx):
         M = information(idx)
-        L = jnp.linalg.cholesky(M)
+        L = cholesky_of_symmetric(M)
         Z = _chol_solve_blocks(L, B)  # (N, r, k): L^-1 B_j^T
         Zs = Z[idx]  # (m, r, k)
         Pjj = jnp.einsum("nri,nrj->nij", Z, Z)  # (N, k, k)
@@ -298,7 +300,7 @@ def _greedy_i(B: Array, Q: Array, m: int, eps: Array) -> Array:
 
 def _spd_solve_blocks(M: Array, B: Array) -> Array:
     """``M^-1 B_j^T`` for every block: ``(r, r) SPD, (N, k, r) -> (N, r, k)``."""
-    L = jnp.linalg.cholesky(M)
+    L = cholesky_of_symmetric(M)
     Z = _chol_solve_blocks(L, B)
     return jax.scipy.linalg.solve_triangular(L.T, Z, lower=False)
 
