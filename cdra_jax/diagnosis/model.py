@@ -35,11 +35,11 @@ from ..physics.base import sharing_terms
 def all_features(cands: tuple[Candidate, ...], arm: Arm, q: Array, aux: Aux) -> Features:
     """Features of every candidate in ``cands`` (static), concatenated; compiled once, without
     XLA's optimisation passes (``fast_compile``: one large program that runs once per
-    diagnosis, in milliseconds either way; for the default arm's 110 candidates about 6 s to
-    trace and compile, 10 s with the passes). The terms that several forms need (gravity
-    loads, each module's holding tensions, cable-length Jacobians) enter the program once
-    (:func:`cdra_jax.physics.base.sharing_terms`), which halves the compilation (13 s when
-    each form computes its own)."""
+    diagnosis, in milliseconds either way). The terms that several forms need (gravity loads,
+    each module's holding tensions, cable-length Jacobians) enter the program once
+    (:func:`cdra_jax.physics.base.sharing_terms`): for the default arm's 110 candidates and 30
+    poses it traces and compiles in 7.1 s, against 12.8 s when each form computes its own
+    (``benchmarks/diagnosis_compile.py``; the features are the same bitwise)."""
     with sharing_terms():  # terms that several forms need enter the program once
         return Features.concatenate([c.features(arm, q, aux) for c in cands])
 
