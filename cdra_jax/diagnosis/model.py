@@ -28,7 +28,7 @@ from ..calibration.damped import levenberg_marquardt
 from ..calibration.observations import Observations, apply_parameters, stacked_residual
 from ..compilation import filter_jit
 from ..physics import Aux, Candidate, Features, corrected_tool_pose
-from ..physics.base import sharing_terms
+from ..physics.base import stacked_features
 
 
 @functools.partial(filter_jit, fast_compile=True)
@@ -37,11 +37,10 @@ def all_features(cands: tuple[Candidate, ...], arm: Arm, q: Array, aux: Aux) -> 
     XLA's optimisation passes (``fast_compile``: one large program that runs once per
     diagnosis, in milliseconds either way). The terms that several forms need (gravity loads,
     each module's holding tensions, cable-length Jacobians) enter the program once
-    (:func:`cdra_jax.physics.base.sharing_terms`): for the default arm's 110 candidates and 30
+    (:func:`cdra_jax.physics.base.stacked_features`): for the default arm's 110 candidates and 30
     poses it traces and compiles in 7.1 s, against 12.8 s when each form computes its own
     (``benchmarks/diagnosis_compile.py``; the features are the same bitwise)."""
-    with sharing_terms():  # terms that several forms need enter the program once
-        return Features.concatenate([c.features(arm, q, aux) for c in cands])
+    return stacked_features(cands, arm, q, aux)
 
 
 class Extended(eqx.Module):

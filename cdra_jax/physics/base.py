@@ -138,9 +138,9 @@ def sharing_terms() -> Iterator[None]:
 
     The candidates of one diagnosis need the same intermediate terms (the gravity loads, each
     module's holding tensions, the module base frames) for many forms; evaluating all
-    candidates inside this block (as :func:`cdra_jax.diagnosis.model.all_features` does, in
-    one trace) puts each term into the compiled program once instead of once per form, which
-    shortens its compilation. The memo lives only as long as the block.
+    candidates inside this block (as :func:`stacked_features` does, which the diagnosis
+    compiles as one program) puts each term into the program once instead of once per form,
+    which shortens its compilation. The memo lives only as long as the block.
     """
     token = _SHARED_TERMS.set({})
     try:
@@ -290,3 +290,11 @@ class Candidate:
         """The pure extended forward model: tool poses ``(m, 4, 4)`` with this effect's
         parameters ``params (p,)`` (zero: the geometric model exactly)."""
         return corrected_tool_pose(arm, q, self.features(arm, q, aux), params)
+
+
+def stacked_features(cands: Sequence[Candidate], arm: Arm, q: ArrayLike, aux: Aux) -> Features:
+    """Features of several candidates at states ``q (m, dof)``, concatenated along ``p`` in
+    the order given; the terms that several of them need are evaluated once
+    (:func:`sharing_terms`)."""
+    with sharing_terms():
+        return Features.concatenate([c.features(arm, q, aux) for c in cands])

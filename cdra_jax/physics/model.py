@@ -28,7 +28,7 @@ from jax.typing import ArrayLike
 
 from ..arm import Arm, EffectRecord
 from ..compilation import filter_jit
-from .base import Aux, Candidate, Effect, Features, corrected_tool_pose
+from .base import Aux, Candidate, Effect, Features, corrected_tool_pose, stacked_features
 from .effects import VOCABULARY, DrumPeriodicError, PeriodicError, ThermalDrift
 
 
@@ -258,7 +258,7 @@ def model_features(
         candidates, _ = model_effects(arm)
     if not candidates:
         return Features.zeros(arm, q.shape[0], 0, q.dtype)
-    return Features.concatenate([c.features(arm, q, aux) for c in candidates])
+    return stacked_features(candidates, arm, q, aux)
 
 
 def model_tool_pose(
