@@ -272,19 +272,16 @@ class Candidate:
         (:data:`ROUNDING`) set to exactly zero: a parameter this arm's geometry does not see
         (the travel of a prismatic joint along a revolute axis produces no torque about it),
         which a fit must leave alone rather than scale up from rounding noise."""
-        q = jnp.asarray(q)
-        f = self.effect.features(arm, q, aux, self.location)
+        f = self._effect_features(arm, q, aux)
+        return _without_rounding_columns(f, np.zeros(f.n_params, int))
+
+    def _effect_features(self, arm: Arm, q: ArrayLike, aux: Aux) -> Features:
+        """The effect's features as it computes them (rounding-level columns included)."""
+        f = self.effect.features(arm, jnp.asarray(q), aux, self.location)
         p = len(self.parameters(arm))
         if f.n_params != p:  # a bug in an effect, not a user error
             raise AssertionError(f"{self.label}: {f.n_params} feature columns for {p} parameters")
-        parts = (f.state, f.module_twist, f.frame_deflection)
-        if p == 0:
-            return f
-        size = jnp.max(jnp.stack([jnp.abs(a).reshape(-1, p).max(axis=0) for a in parts]), axis=0)
-        # a column that is not finite stays as it is: the diagnosis marks the candidate failed
-        largest = jnp.max(jnp.where(jnp.isfinite(size), size, 0.0))
-        seen = ~(size <= ROUNDING * largest)
-        return Features(*(jnp.where(seen, a, 0.0) for a in parts))
+        return f
 
     def tool_pose(self, arm: Arm, q: ArrayLike, aux: Aux, params: ArrayLike) -> Array:
         """The pure extended forward model: tool poses ``(m, 4, 4)`` with this effect's
@@ -294,7 +291,29 @@ class Candidate:
 
 def stacked_features(cands: Sequence[Candidate], arm: Arm, q: ArrayLike, aux: Aux) -> Features:
     """Features of several candidates at states ``q (m, dof)``, concatenated along ``p`` in
-    the order given; the terms that several of them need are evaluated once
-    (:func:`sharing_terms`)."""
+    the order given: each candidate's :meth:`Candidate.features`. The terms that several of
+    them need are evaluated once (:func:`sharing_terms`), and the rounding-level columns of
+    all of them are found in one pass (each against its own candidate's largest column)."""
     with sharing_terms():
-        return Features.concatenate([c.features(arm, q, aux) for c in cands])
+        raw = [c._effect_features(arm, q, aux) for c in cands]
+    segments = np.repeat(np.arange(len(raw)), [f.n_params for f in raw])
+    return _without_rounding_columns(Features.concatenate(raw), segments)
+
+
+def _without_rounding_columns(f: Features, segments: np.ndarray) -> Features:
+    """``f`` with every column at the rounding level (:data:`ROUNDING`) of the largest column
+    of its segment set to exactly zero; ``segments (p,)``: each column's candidate (static,
+    ``0, 0, 1, ...``). A column that is not finite stays as it is (the diagnosis marks its
+    candidate failed)."""
+    p = f.n_params
+    if p == 0:
+        return f
+    parts = [a.reshape(-1, p) for a in (f.state, f.module_twist, f.frame_deflection)]
+    size = jnp.max(jnp.stack([jnp.abs(a).max(axis=0) for a in parts]), axis=0)
+    # Tested apart: XLA:CPU's max reduction does not always carry a NaN through.
+    finite = jnp.all(jnp.stack([jnp.isfinite(a).all(axis=0) for a in parts]), axis=0)
+    member = np.arange(int(segments.max()) + 1)[:, None] == segments[None, :]  # (S, p)
+    largest = jnp.max(jnp.where(member & finite, size, 0.0), axis=1)[segments]  # (p,)
+    seen = ~finite | ~(size <= ROUNDING * largest)
+    parts = [f.state, f.module_twist, f.frame_deflection]
+    return Features(*(jnp.where(seen, a, 0.0) for a in parts))
