@@ -21,7 +21,14 @@ from cdra_jax.arm import apply_frame_errors
 from cdra_jax.diagnosis.model import all_features
 from cdra_jax.io import Measurements, default_arm
 from cdra_jax.modules.tension import sample_feasible_states
-from cdra_jax.physics import PROBES, candidates, corrected_tool_pose
+from cdra_jax.physics import (
+    PROBES,
+    Effect,
+    Features,
+    ParameterSpec,
+    candidates,
+    corrected_tool_pose,
+)
 from cdra_jax.physics.synthetic import recording_aux
 from cdra_jax.simulation import add_measurement_noise, random_frame_errors
 
@@ -72,3 +79,21 @@ def recordings(
     T = add_measurement_noise(jax.random.PRNGKey(seed), T, noise)
     aux = {k: np.asarray(v) for k, v in b.aux.items()}
     return Measurements.from_arrays(b.arm, np.asarray(b.q), np.asarray(T), aux=aux)
+
+
+class BrokenEffect(Effect):
+    """A candidate at the elbow whose one feature column is not finite (NaN in the first state
+    entry of every pose): a numerical failure the diagnosis must survive."""
+
+    name = "broken"
+    summary = "a candidate whose features are not finite"
+
+    def locations(self, arm):
+        return ("elbow",)
+
+    def parameters(self, arm, location):
+        return (ParameterSpec("x", "1", -1.0, 1.0),)
+
+    def features(self, arm, q, aux, location):
+        f = Features.zeros(arm, q.shape[0], 1, q.dtype)
+        return Features(f.state.at[:, 0, 0].set(jnp.nan), f.module_twist, f.frame_deflection)

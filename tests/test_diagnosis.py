@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
-from _physics_data import NOISE, base, find, recordings
+from _physics_data import NOISE, BrokenEffect, base, find, recordings
 
 from cdra_jax.cli import main
 from cdra_jax.diagnosis import diagnose, diagnose_files, stats
@@ -514,24 +514,8 @@ def test_a_physically_impossible_estimate_is_never_reported():
 
 
 def test_a_candidate_that_fails_numerically_is_marked_failed_and_the_diagnosis_goes_on():
-    from cdra_jax.physics import Effect, Features, ParameterSpec
-
-    class Broken(Effect):
-        name = "broken"
-        summary = "a candidate whose features are not finite"
-
-        def locations(self, arm):
-            return ("elbow",)
-
-        def parameters(self, arm, location):
-            return (ParameterSpec("x", "1", -1.0, 1.0),)
-
-        def features(self, arm, q, aux, location):
-            f = Features.zeros(arm, q.shape[0], 1, q.dtype)
-            return Features(f.state.at[:, 0, 0].set(jnp.nan), f.module_twist, f.frame_deflection)
-
     c = find("cable_scale", "elbow", "from_home")
-    d = diagnose(base().arm, recordings(c, [0.02]), NOISE, effects=(c.effect, Broken()))
+    d = diagnose(base().arm, recordings(c, [0.02]), NOISE, effects=(c.effect, BrokenEffect()))
     assert (d.effect, d.located_in) == ("cable_scale", "elbow"), d.report
     row = next(r for r in d.candidates if r.effect == "broken")
     assert row.skipped == "failed: its features are not finite on these data"

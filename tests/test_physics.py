@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _physics_data import base, find
+from _physics_data import BrokenEffect, base, find
 
 from cdra_jax import NoiseModel, lie, tool_pose
 from cdra_jax.arm import Arm
@@ -20,9 +20,7 @@ from cdra_jax.modules.statics import gravity_torques, holding_tensions
 from cdra_jax.physics import (
     EFFECT_NAMES,
     Candidate,
-    Effect,
     Features,
-    ParameterSpec,
     bending_deflection,
     candidates,
     corrected_tool_pose,
@@ -166,23 +164,8 @@ def test_features_in_one_program_equal_each_candidate_alone():
 def test_a_column_that_is_not_finite_stays_among_many_candidates():
     """Rounding-level columns are zeroed per candidate; a non-finite column is kept as it is
     (the diagnosis marks its candidate failed), however many candidates are stacked."""
-
-    class Broken(Effect):
-        name = "broken"
-
-        def locations(self, arm):
-            return ("elbow",)
-
-        def parameters(self, arm, location):
-            return (ParameterSpec("x", "1", -1.0, 1.0),)
-
-        def features(self, arm, q, aux, location):
-            f = Features.zeros(arm, q.shape[0], 1, q.dtype)
-            st = f.state.at[:, 0, 0].set(jnp.nan)
-            return Features(st, f.module_twist, f.frame_deflection)
-
     b = base()
-    broken = Candidate(Broken(), "elbow")
+    broken = Candidate(BrokenEffect(), "elbow")
     others = tuple(c for c in b.everything if c.name in ("cable_scale", "probe"))
     F = stacked_features((*others[:3], broken, *others[3:]), b.arm, b.q, b.aux)
     k = sum(len(c.parameters(b.arm)) for c in others[:3])
