@@ -308,12 +308,12 @@ def _without_rounding_columns(f: Features, segments: np.ndarray) -> Features:
     p = f.n_params
     if p == 0:
         return f
-    parts = [a.reshape(-1, p) for a in (f.state, f.module_twist, f.frame_deflection)]
-    size = jnp.max(jnp.stack([jnp.abs(a).max(axis=0) for a in parts]), axis=0)
+    parts = (f.state, f.module_twist, f.frame_deflection)
+    columns = [a.reshape(-1, p) for a in parts]  # (entries, p) each
+    size = jnp.max(jnp.stack([jnp.abs(c).max(axis=0) for c in columns]), axis=0)
     # Tested apart: XLA:CPU's max reduction does not always carry a NaN through.
-    finite = jnp.all(jnp.stack([jnp.isfinite(a).all(axis=0) for a in parts]), axis=0)
+    finite = jnp.all(jnp.stack([jnp.isfinite(c).all(axis=0) for c in columns]), axis=0)
     member = np.arange(int(segments.max()) + 1)[:, None] == segments[None, :]  # (S, p)
     largest = jnp.max(jnp.where(member & finite, size, 0.0), axis=1)[segments]  # (p,)
     seen = ~finite | ~(size <= ROUNDING * largest)
-    parts = [f.state, f.module_twist, f.frame_deflection]
     return Features(*(jnp.where(seen, a, 0.0) for a in parts))
