@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _subprocess import ROOT, checkout_env
 
 
 def run_on_two_cpu_devices(script: str, timeout: float | None = None, forced: bool = True) -> None:
@@ -16,14 +14,11 @@ def run_on_two_cpu_devices(script: str, timeout: float | None = None, forced: bo
     ``--xla_force_host_platform_device_count=2`` (the flag must be set before JAX starts, hence
     the subprocess); otherwise the script sets up its devices itself (``use_cpu_devices``).
     ``PJRT_NPROC`` is removed from the environment: each script decides the pool size."""
-    env = dict(os.environ)
-    env.pop("PJRT_NPROC", None)
-    env.pop("NPROC", None)
+    env = checkout_env("PJRT_NPROC", "NPROC")
     if forced:
         env["XLA_FLAGS"] = (
             env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
         ).strip()
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     proc = subprocess.run(
         [sys.executable, "-c", script],
         env=env,

@@ -36,6 +36,7 @@ import jax
 import numpy as np
 import pytest
 import tomli_w
+from _subprocess import checkout_env
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -1383,6 +1384,7 @@ def _cli_process(argv: list[str], cwd: Path) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "cdra_jax.cli", *argv],
         cwd=cwd,
+        env=checkout_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -1458,7 +1460,11 @@ def test_sigterm_during_a_sweep_leaves_no_file_and_the_rerun_resumes(tmp_path):
     assert 1 <= len(finished) < 50, finished  # whole chunks only, the sweep not done
 
     again = subprocess.run(
-        [sys.executable, "-m", "cdra_jax.cli", *argv], cwd=work, capture_output=True, text=True
+        [sys.executable, "-m", "cdra_jax.cli", *argv],
+        cwd=work,
+        env=checkout_env(),
+        capture_output=True,
+        text=True,
     )
     assert again.returncode == 0, again.stderr
     assert f"resuming from {len(finished)} finished chunk(s)" in again.stderr

@@ -16,11 +16,11 @@ import time
 from pathlib import Path
 
 import pytest
+from _subprocess import checkout_env
 
 from cdra_jax import cli
 from cdra_jax.distributed import Group, GroupError, free_port, parse_coordinator
 
-ROOT = Path(__file__).resolve().parents[1]
 SWEEP = [
     "sweep",
     "--noise-pos",
@@ -44,10 +44,7 @@ SWEEP = [
 
 
 def _start(out: Path, *extra: str) -> subprocess.Popen:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    for name in ("PJRT_NPROC", "NPROC", "JAX_NUM_CPU_DEVICES"):
-        env.pop(name, None)
+    env = checkout_env("PJRT_NPROC", "NPROC", "JAX_NUM_CPU_DEVICES")
     argv = [sys.executable, "-m", "cdra_jax.cli", *SWEEP, "--out", str(out), *extra]
     return subprocess.Popen(
         argv, env=env, cwd=out.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True

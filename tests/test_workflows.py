@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _subprocess import checkout_env
 from matplotlib.figure import Figure
 
 import cdra_jax
@@ -311,12 +312,10 @@ def test_model_out_and_compare(truth_sim, calibration, tmp_path, capsys):
 
 
 def test_the_cli_keeps_compiled_programs_between_runs(tmp_path):
-    import os
     import subprocess
 
     cache = tmp_path / "xla"
-    env = {**os.environ, "CDRA_JAX_CACHE_DIR": str(cache)}
-    env.pop("CDRA_JAX_NO_CACHE", None)
+    env = checkout_env("CDRA_JAX_NO_CACHE", CDRA_JAX_CACHE_DIR=str(cache))
     argv = [sys.executable, "-m", "cdra_jax.cli", "simulate", "--poses", "4", "--out"]
     subprocess.run([*argv, str(tmp_path / "a.csv")], env=env, check=True, capture_output=True)
     entries = sorted(p.name for p in cache.iterdir())
