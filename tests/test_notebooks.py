@@ -9,16 +9,14 @@ after it that overrides them (as papermill does). Add a notebook by adding an en
 ``NOTEBOOKS``.
 """
 
-import os
 from collections.abc import Iterator
-from pathlib import Path
 
 import nbformat
 import pytest
+from _subprocess import ROOT, checkout_env
 from jupyter_client.manager import KernelManager
 from nbclient import NotebookClient
 
-ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOK_DIR = ROOT / "notebooks"
 CELL_TIMEOUT_S = 300
 """Per-cell execution limit of the re-execution (nbclient ``timeout``)."""
@@ -185,11 +183,7 @@ def test_notebook_stored_with_outputs(name):
 @pytest.fixture(scope="module")
 def kernel() -> Iterator[KernelManager]:
     """One Python kernel for all notebooks, importing this checkout's cdra_jax."""
-    env = dict(os.environ)
-    path = env.get("PYTHONPATH", "")
-    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + path if path else "")
-    env["CDRA_NOTEBOOK_FAST"] = "1"
-    env["MPLBACKEND"] = "Agg"
+    env = checkout_env(CDRA_NOTEBOOK_FAST="1", MPLBACKEND="Agg")
     km = KernelManager(kernel_name="python3")
     km.start_kernel(env=env, cwd=str(ROOT))
     try:
