@@ -68,6 +68,7 @@ from cdra_jax import (  # noqa: E402
     calibrate_paper,
     default_arm,
 )
+from cdra_jax.calibration import levenberg_marquardt  # noqa: E402
 from cdra_jax.compilation import jit as package_jit  # noqa: E402
 from cdra_jax.parallel import split_over_devices, use_cpu_devices  # noqa: E402
 from cdra_jax.simulation import simulate_trial  # noqa: E402
@@ -390,6 +391,7 @@ def summary_json(res: dict, args, n_base: int) -> dict:
         noise=bool(args.noise),
         devices=[str(d) for d in jax.devices()],
         jax_version=jax.__version__,
+        lm_chunk_size=levenberg_marquardt.CHUNK_SIZE,
     )
     ref = res.get("numpy", {}).get("trials_per_s", float("nan"))
     for name, r in res.items():
@@ -544,7 +546,16 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument(
         "--lm-max-trials", type=int, default=100_000, help="largest N the LM scaling runs"
     )
+    p.add_argument(
+        "--lm-chunk-size",
+        type=int,
+        default=None,
+        help="trials per chunk of the vmapped LM solver (default: its CHUNK_SIZE, 32); read when "
+        "the solver is traced",
+    )
     args = p.parse_args(argv)
+    if args.lm_chunk_size is not None:
+        levenberg_marquardt.CHUNK_SIZE = args.lm_chunk_size
     if args.devices > 1:
         use_cpu_devices(args.devices)  # before JAX starts its CPU backend
     if args.dtype == "float64":
