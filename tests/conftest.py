@@ -5,8 +5,8 @@ import tempfile
 # The suite compiles hundreds of small XLA programs that then run for milliseconds, so compile
 # time dominates it: build them without LLVM's optimisation passes (the whole suite without
 # coverage on two cores: 450 s, against 777 s at level 3; level 1 was slower still on the
-# modules tried; the arithmetic is the same, XLA's fast-math stays off). Set before JAX starts its backend, and
-# inherited by the notebook kernels and the subprocess tests.
+# modules tried; the arithmetic is the same, XLA's fast-math stays off). Set before JAX starts
+# its backend, and inherited by the notebook kernels and the subprocess tests.
 # The solvers compile faster still with XLA:CPU's older element-wise emitters, which the package
 # uses for its own compilations (cdra_jax.compilation); setting them here gives the tests that
 # call jax.jit directly the same configuration. tests/test_compilation.py compares the solvers
