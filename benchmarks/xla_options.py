@@ -31,7 +31,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 
 import numpy as np
 
@@ -48,36 +47,33 @@ each of the CPU backend's code-size options alone."""
 
 
 def _child(problems: str, solvers: list[str], repeats: int, frames_out: str) -> None:
-    """Compile and time the solvers in this process (its ``XLA_FLAGS`` are the variant's);
-    print one JSON line and save the frames to ``frames_out``."""
+    """Compile and time the solvers in this process (its ``XLA_FLAGS`` are the variant's) with
+    ``benchmarks/throughput.py``'s timer; print one JSON line and save the frames to
+    ``frames_out``."""
     import jax
     import jax.numpy as jnp
 
     jax.config.update("jax_enable_x64", True)
+    sys.path.insert(0, _HERE)
+    import throughput
+
     from cdra_jax import calibrate_lm, calibrate_paper, default_arm
-    from cdra_jax.compilation import jit
 
     arm = default_arm()
-    data = np.load(problems)
-    q, T = jnp.asarray(data["q"]), jnp.asarray(data["T"])
+    with np.load(problems) as data:
+        q, T = data["q"], data["T"]
     fns = {"paper": calibrate_paper, "lm": calibrate_lm}
     out: dict[str, dict[str, float]] = {}
     frames = {}
     for name in solvers:
         f = fns[name]
-        fn = jit(jax.vmap(lambda q, T, f=f: f(arm, q, T, throw=False)))
-        t0 = time.perf_counter()
-        compiled = fn.lower(q, T).compile()
-        compile_s = time.perf_counter() - t0
-        sol = jax.block_until_ready(compiled(q, T))
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(compiled(q, T))
-            times.append(time.perf_counter() - t0)
+        r = throughput.time_jax(
+            lambda q, T, f=f: f(arm, q, T, throw=False), q, T, repeats, first_call=False
+        )
+        sol = r["solution"]
         out[name] = {
-            "compile_s": compile_s,
-            "us_per_trial": statistics.median(times) / q.shape[0] * 1e6,
+            "compile_s": r["compile_s"],
+            "us_per_trial": 1e6 / r["trials_per_s"],
             "converged": float(jnp.mean(sol.result._value == 0)),
         }
         frames[name] = np.asarray(sol.frames)
