@@ -35,6 +35,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, module_poses
+from ..compilation import compiled_when_eager
 
 
 @dataclass(frozen=True)
@@ -305,15 +306,23 @@ def _without_rounding_columns(f: Features, segments: np.ndarray) -> Features:
     of its segment set to exactly zero; ``segments (p,)``: each column's candidate (static,
     ``0, 0, 1, ...``). A column that is not finite stays as it is (the diagnosis marks its
     candidate failed)."""
-    p = f.n_params
-    if p == 0:
+    if f.n_params == 0:
         return f
+    member = np.arange(int(segments.max()) + 1)[:, None] == segments[None, :]  # (S, p)
+    return _zero_rounding_columns(f, member, segments)
+
+
+@compiled_when_eager
+def _zero_rounding_columns(f: Features, member: Array, segments: Array) -> Features:
+    """:func:`_without_rounding_columns` given ``member (S, p)``, whether column ``c`` belongs
+    to candidate ``s``; one compiled program per shape when called on concrete features (a
+    diagnosis outside ``jit``), instead of a dozen small ones."""
+    p = f.n_params
     parts = (f.state, f.module_twist, f.frame_deflection)
     columns = [a.reshape(-1, p) for a in parts]  # (entries, p) each
     size = jnp.max(jnp.stack([jnp.abs(c).max(axis=0) for c in columns]), axis=0)
     # Tested apart: XLA:CPU's max reduction does not always carry a NaN through.
     finite = jnp.all(jnp.stack([jnp.isfinite(c).all(axis=0) for c in columns]), axis=0)
-    member = np.arange(int(segments.max()) + 1)[:, None] == segments[None, :]  # (S, p)
     largest = jnp.max(jnp.where(member & finite, size, 0.0), axis=1)[segments]  # (p,)
     seen = ~finite | ~(size <= ROUNDING * largest)
     return Features(*(jnp.where(seen, a, 0.0) for a in parts))
