@@ -27,8 +27,8 @@ from ..calibration import calibrate_paper
 from ..calibration.damped import levenberg_marquardt
 from ..calibration.observations import Observations, apply_parameters, stacked_residual
 from ..compilation import filter_jit
-from ..physics import Aux, Candidate, Features, corrected_tool_pose
-from ..physics.base import stacked_features
+from ..physics import Aux, Candidate, Features
+from ..physics.base import feature_corrections, perturbed_tool_pose, stacked_features
 
 
 @functools.partial(filter_jit, fast_compile=True)
@@ -87,19 +87,73 @@ class Extended(eqx.Module):
 def whitened_residual(y: Array, problem: Extended) -> Array:
     """``(6 m + 3 m P,)`` whitened residual of the extended model at ``y`` (module docstring)."""
     n = problem.n_frames_markers
+    corrections = feature_corrections(problem.features, jnp.asarray(y[n:], problem.q.dtype))
+    return _residual_at(y[:n], corrections, problem)
+
+
+def _residual_at(y_frames: Array, corrections: tuple[Array, Array, Array], problem: Extended):
+    """The whitened residual at the frame and marker entries ``y_frames (6 (K+1) + 3 c,)`` of
+    ``y`` and the per-pose corrections (:func:`cdra_jax.physics.base.feature_corrections`)
+    that its physical parameters make."""
     frames, xyz = apply_parameters(
-        y[:n], jnp.asarray(problem.arm.frames, y.dtype), problem.xyz, problem.calibrated
+        y_frames, jnp.asarray(problem.arm.frames, y_frames.dtype), problem.xyz, problem.calibrated
     )
-    tool = corrected_tool_pose(problem.arm.with_frames(frames), problem.q, problem.features, y[n:])
+    tool = perturbed_tool_pose(problem.arm.with_frames(frames), problem.q, *corrections)
     return stacked_residual(
         tool, xyz, problem.obs, problem.sigma_pos, problem.sigma_rot, problem.sigma_pt
     )
 
 
 def residual_and_jacobian(y: Array, problem: Extended) -> tuple[Array, Array]:
-    """Residual ``(N,)`` and its Jacobian ``(N, len(y))``: every column of
-    :func:`residual_and_columns`."""
-    return residual_and_columns(y, problem, np.arange(y.shape[0]))
+    """Residual ``(N,)`` and its Jacobian ``(N, len(y))``, every column.
+
+    The frame and marker columns by forward mode, one tangent each; the physical parameters'
+    (hundreds: every candidate's) through the per-pose corrections that they move, by the chain
+    rule: the corrections ``u_i = F_i theta`` of pose ``i`` (``dof + 6 K + 6 (K+1)`` entries)
+    are linear in ``theta`` and move only that pose's rows, so ``dr_i/dtheta = (dr_i/du_i)
+    F_i``, with ``dr/du`` from one tangent per correction entry (the same unit entry at every
+    pose): ``dof + 12 K + 6`` tangents (49 for the CDRA) instead of one per parameter. Equal to
+    ``jax.jacfwd`` of :func:`whitened_residual` to rounding."""
+    return _residual_and_full_jacobian(y, problem)
+
+
+@filter_jit
+def _residual_and_full_jacobian(y: Array, problem: Extended) -> tuple[Array, Array]:
+    n = problem.n_frames_markers
+    m = problem.q.shape[0]
+    f = problem.features
+    corrections = feature_corrections(f, jnp.asarray(y[n:], problem.q.dtype))
+    r, tangent = jax.linearize(lambda yf, u: _residual_at(yf, u, problem), y[:n], corrections)
+    shapes = [u.shape[1:] for u in corrections]
+    sizes = [int(np.prod(s)) for s in shapes]
+
+    def at_every_pose(v: Array) -> tuple[Array, ...]:
+        """A tangent of the corrections: the same ``v (sum(sizes),)`` at every pose."""
+        parts = jnp.split(v, np.cumsum(sizes)[:-1])
+        return tuple(
+            jnp.broadcast_to(p.reshape(s), (m, *s)) for p, s in zip(parts, shapes, strict=True)
+        )
+
+    no_frames = jnp.zeros(n, y.dtype)
+    no_corrections = tuple(jnp.zeros_like(u) for u in corrections)
+    J_frames = jax.vmap(lambda t: tangent(t, no_corrections))(jnp.eye(n, dtype=y.dtype)).T
+    dr_du = jax.vmap(lambda v: tangent(no_frames, at_every_pose(v)))(
+        jnp.eye(sum(sizes), dtype=y.dtype)
+    )  # (dof + 12 K + 6, N)
+    F = jnp.concatenate(
+        [a.reshape(m, -1, f.n_params) for a in (f.state, f.module_twist, f.frame_deflection)],
+        axis=1,
+    )  # (m, dof + 12 K + 6, p): u_i = F_i theta
+    poses, points = dr_du[:, : 6 * m], dr_du[:, 6 * m :]  # rows pose-major (stacked_residual)
+    J_theta = jnp.concatenate(
+        [
+            jnp.einsum("cmr,mcp->mrp", part.reshape(part.shape[0], m, -1), F).reshape(
+                -1, f.n_params
+            )
+            for part in (poses, points)
+        ]
+    )
+    return r, jnp.concatenate([J_frames, J_theta.astype(J_frames.dtype)], axis=1)
 
 
 COLUMN_BUCKET = 16

@@ -109,7 +109,14 @@ def corrected_tool_pose(arm: Arm, q: ArrayLike, features: Features, theta: Array
         ``T_OF`` per pose, world frame, mm. ``theta = 0`` is Eq. 1 exactly.
     """
     q = jnp.asarray(q)
-    theta = jnp.asarray(theta, q.dtype)
+    return perturbed_tool_pose(arm, q, *feature_corrections(features, jnp.asarray(theta, q.dtype)))
+
+
+def feature_corrections(features: Features, theta: ArrayLike) -> tuple[Array, Array, Array]:
+    """The per-pose corrections ``features @ theta`` that :func:`corrected_tool_pose` applies:
+    module-state offsets ``(m, dof)``, module-platform twists ``(m, K, 6)`` (module base frame)
+    and fixed-frame end deflections ``(m, K+1, 6)``; linear in ``theta (p,)``."""
+    theta = jnp.asarray(theta)
     if theta.shape != (features.n_params,):
         raise ValueError(
             f"theta must have shape ({features.n_params},) (one entry per feature column), "
@@ -118,6 +125,14 @@ def corrected_tool_pose(arm: Arm, q: ArrayLike, features: Features, theta: Array
     dq = jnp.einsum("...dp,p->...d", features.state, theta)
     xi = jnp.einsum("...kcp,p->...kc", features.module_twist, theta)
     defl = jnp.einsum("...kcp,p->...kc", features.frame_deflection, theta)
+    return dq, xi, defl
+
+
+def perturbed_tool_pose(arm: Arm, q: Array, dq: Array, xi: Array, defl: Array) -> Array:
+    """Tool poses ``(m, 4, 4)`` (world frame, mm) of the chain at states ``q + dq (m, dof)``,
+    each module platform moved by the twist ``xi (m, K, 6)`` (on the left, module base frame)
+    and each fixed frame's end deflected by ``defl (m, K+1, 6)`` (translation added, rotation
+    on the left): the corrections of :func:`feature_corrections`; all zero: Eq. 1."""
     poses = lie.se3_exp(xi) @ module_poses(arm, q + dq)
     frames = jnp.asarray(arm.frames, q.dtype)
     R = lie.so3_exp(defl[..., 3:]) @ frames[..., :3, :3]
@@ -313,7 +328,7 @@ def _without_rounding_columns(f: Features, segments: np.ndarray) -> Features:
 
 
 @compiled_when_eager
-def _zero_rounding_columns(f: Features, member: Array, segments: Array) -> Features:
+def _zero_rounding_columns(f: Features, member: ArrayLike, segments: ArrayLike) -> Features:
     """:func:`_without_rounding_columns` given ``member (S, p)``, whether column ``c`` belongs
     to candidate ``s``; one compiled program per shape when called on concrete features (a
     diagnosis outside ``jit``), instead of a dozen small ones."""
