@@ -91,7 +91,9 @@ def whitened_residual(y: Array, problem: Extended) -> Array:
     return _residual_at(y[:n], corrections, problem)
 
 
-def _residual_at(y_frames: Array, corrections: tuple[Array, Array, Array], problem: Extended):
+def _residual_at(
+    y_frames: Array, corrections: tuple[Array, Array, Array], problem: Extended
+) -> Array:
     """The whitened residual at the frame and marker entries ``y_frames (6 (K+1) + 3 c,)`` of
     ``y`` and the per-pose corrections (:func:`cdra_jax.physics.base.feature_corrections`)
     that its physical parameters make."""
@@ -119,6 +121,7 @@ def residual_and_jacobian(y: Array, problem: Extended) -> tuple[Array, Array]:
 
 @filter_jit
 def _residual_and_full_jacobian(y: Array, problem: Extended) -> tuple[Array, Array]:
+    """:func:`residual_and_jacobian`, compiled once per problem shape."""
     n = problem.n_frames_markers
     m = problem.q.shape[0]
     f = problem.features
@@ -163,10 +166,10 @@ lanes give zero columns, dropped), so that refits of different sizes share a few
 
 def residual_and_columns(y: Array, problem: Extended, columns: np.ndarray) -> tuple[Array, Array]:
     """Residual ``(N,)`` and the columns ``columns`` (indices into ``y``) of its Jacobian,
-    ``(N, len(columns))``: forward mode with one tangent per column (``jax.linearize``), a
-    small fraction of the cost of every column where few entries of ``y`` are asked for (the
-    frames and one candidate's parameters of several hundred: about 4 ms against 80 ms for
-    30 CDRA poses). Compiled once per block count (:data:`COLUMN_BUCKET`)."""
+    ``(N, len(columns))``: forward mode with one tangent per column (``jax.linearize``), for
+    the few entries of ``y`` that a refit frees (the frames and one candidate's parameters of
+    several hundred); every column at once is :func:`residual_and_jacobian`. Compiled once per
+    block count (:data:`COLUMN_BUCKET`)."""
     columns = np.asarray(columns, int)
     k = len(columns)
     padded = -(-max(k, 1) // COLUMN_BUCKET) * COLUMN_BUCKET
