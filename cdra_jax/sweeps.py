@@ -493,7 +493,7 @@ def _solve_function(
         elif solver == "weighted":
             sol = calibrate_paper(arm, q_cal, T_cal, noise, throw=False, **kw, **gn)
         else:
-            sol = calibrate_lm(arm, q_cal, T_cal, noise, throw=False, **kw)
+            sol = calibrate_lm(arm, q_cal, T_cal, noise, throw=False, **kw, **gn)
         actual = apply_frame_errors(arm, X)
         T_model = tool_pose(arm.with_frames(sol.frames), q_ver)
         # held-out: against the true (noise-free) poses and the measured ones, in one call
@@ -646,9 +646,9 @@ def run_sweep(
             :func:`cdra_jax.modules.sample_feasible_states`; modules without cables stay
             uniform). Pass :func:`cdra_jax.simulation.sample_states` for plain uniform states.
         max_iterations: solver iteration cap (default: each solver's own).
-        predictive_stop: the paper and weighted solvers stop once the remaining steps are
-            predicted below their tolerance (their default,
-            :func:`~cdra_jax.calibration.calibrate_paper`): about one step fewer per trial,
+        predictive_stop: the solvers stop once the remaining steps are predicted below their
+            tolerances (their default, :func:`~cdra_jax.calibration.calibrate_paper`,
+            :func:`~cdra_jax.calibration.calibrate_lm`): about one pass fewer per trial,
             frames and held-out errors within 1e-8 mm of the plain stop (``False``), whose
             noise-free fit metrics end near 1e-13 mm rather than 1e-10.
         devices: devices to split every chunk over (default ``jax.local_devices()``, those of

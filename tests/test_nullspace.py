@@ -15,6 +15,7 @@ from cdra_jax import lie, simulation
 from cdra_jax.arm import tool_pose
 from cdra_jax.calibration import (
     NoiseModel,
+    calibrate_lm,
     calibrate_paper,
     default_rcond,
     min_norm_lstsq,
@@ -145,9 +146,9 @@ def test_null_space_solve_flags_data_rank_deficiency(cdra):
 
 
 @eqx.filter_jit
-def _solves(arm, q, T, noise, kw_a, kw_b):
+def _solves(arm, q, T, noise, kw_a, kw_b, solve=None):
     def one(qq, tt, kw):
-        return calibrate_paper(arm, qq, tt, noise, throw=False, **kw)
+        return (solve or calibrate_paper)(arm, qq, tt, noise, throw=False, **kw)
 
     a = jax.vmap(lambda qq, tt: one(qq, tt, dict(kw_a)))(q, T)
     b = jax.vmap(lambda qq, tt: one(qq, tt, dict(kw_b)))(q, T)
@@ -210,6 +211,33 @@ def paper15(cdra):
         q, T, q_ver, _, _ = jax.jit(sim)(keys)
         out[name] = (q, T, q_ver, noise)
     return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "case, weighted", [("clean", False), ("noisy", True), ("noisy", False)], ids=str
+)
+def test_lm_predictive_stop_keeps_the_answers(cdra, paper15, case, weighted):
+    """LM's predictive stop on the paper's problem (m = 15): every trial converged, with the
+    result codes of the plain stop, no more steps, frames and predicted tool poses within 1e-8
+    mm (noise-free: the plain stop takes at most one more step, of about 1e-11; the flat
+    unweighted noisy minimum converges linearly and the predictive stop does not apply)."""
+    q, T, q_ver, noise = paper15[case]
+    noise = noise if weighted else None
+    ref, new = _solves(
+        cdra, q, T, noise, _frozen(predictive_stop=False), _frozen(), solve=calibrate_lm
+    )
+    np.testing.assert_array_equal(new.result._value, ref.result._value)
+    assert np.all(np.asarray(new.converged))
+    assert np.all(np.asarray(new.iterations) <= np.asarray(ref.iterations))
+    np.testing.assert_allclose(np.asarray(new.frames), np.asarray(ref.frames), rtol=0, atol=1e-8)
+
+    def predict(frames):
+        return jax.vmap(lambda fr, qq: tool_pose(cdra.with_frames(fr), qq))(frames, q_ver)
+
+    np.testing.assert_allclose(
+        np.asarray(predict(new.frames)), np.asarray(predict(ref.frames)), rtol=0, atol=1e-8
+    )
 
 
 @pytest.mark.slow

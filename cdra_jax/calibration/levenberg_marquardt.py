@@ -15,7 +15,8 @@ non-linear least squares problems*, 2004, Alg. 3.16): the step solves ``(J^T J +
 nominal model is: the first step is a full Gauss-Newton step. Each pass evaluates the model at
 the proposed step, decides on it, and proposes the next step from the normal equations where
 it stands; the MINPACK-style tests of :func:`_converged` on that proposal stop the trial before
-another pass would evaluate it.
+another pass would evaluate it. Once the iteration contracts fast, the predictive stop takes the
+last proposal without another pass (``predictive_stop``, :func:`calibrate_lm`).
 
 Scaling. The damping's metric ``N_0`` is ``J^T J`` of the nominal model (Jacobi-scaled, as the
 whole system): in the coordinates that whiten the nominal Jacobian it is the identity, so that
@@ -143,6 +144,15 @@ INITIAL_DAMPING = 1e-6
 """Initial Levenberg-Marquardt damping relative to ``max(diag(J^T J))`` (= 1 in the rescaled
 coordinates; see the module docstring)."""
 
+PREDICTIVE_RATE = 0.01
+"""``predictive_stop`` applies once the proposed step is below this fraction of the step just
+taken (the iteration contracts fast: its quadratic phase)."""
+
+PREDICTIVE_SLACK = 100.0
+"""``predictive_stop``: the step after the proposal, predicted from the last ones, must pass the
+step test of :func:`_converged` with ``atol`` and ``rtol`` this many times larger (noise-free:
+a change of the residual below 1e-9 mm) or its cost test as it is."""
+
 MAX_DAMPING_GROWTH = 2.0**30
 """Cap of the damping's growth factor ``nu`` (it doubles at every refused step in a row)."""
 
@@ -160,6 +170,7 @@ def calibrate_lm(
     allow_underdetermined: bool = False,
     throw: bool = True,
     singular_values: bool = False,
+    predictive_stop: bool = True,
 ) -> CalibrationSolution:
     """Calibrate the fixed transforms of ``arm`` by Levenberg-Marquardt (module docstring).
 
@@ -175,6 +186,18 @@ def calibrate_lm(
     ``D~`` at the solution (a QR and an SVD, once) and reports their rank; by default the rank
     is the solve's own (``n - k`` where the fast steps apply, else that of the SVD of ``J~`` at
     the nominal model) and the singular values are NaN, as for :func:`calibrate_paper`.
+
+    ``predictive_stop`` (default) saves the last pass of the loop (normal equations and a
+    solve), as the paper solver's predictive stop does. Once the iteration contracts fast (the
+    step just evaluated was taken with a gain ratio above 3/4 and the proposal is below
+    :data:`PREDICTIVE_RATE` of it), the step after the proposal is predicted from the last
+    three, its ratio to the proposal shrinking as the last ratio did; when it would pass the
+    step test of :func:`_converged` with tolerances :data:`PREDICTIVE_SLACK` times larger, the
+    proposal is taken without another pass (or when its predicted reduction of the cost passes
+    the cost test as it is), and the model is evaluated once at the end. Plain
+    LM takes that same step and then stops, or takes one more step of about that predicted
+    size. A proposal that would raise the cost is not taken: the trial is solved again from the
+    start without the predictive stop. ``False``: the tests of :func:`_converged` alone.
     """
     null_modules, _ = null_generators(arm)
 
@@ -187,6 +210,7 @@ def calibrate_lm(
             weighted=noise is not None,
             null_modules=null_modules,
             singular_values=singular_values,
+            predictive_stop=predictive_stop,
         )
 
     return _solve_problem(
@@ -202,7 +226,15 @@ def calibrate_lm(
 
 
 def _lm_solver(
-    *, max_iterations, rtol, atol, rcond, weighted, null_modules=(), singular_values=False
+    *,
+    max_iterations,
+    rtol,
+    atol,
+    rcond,
+    weighted,
+    null_modules=(),
+    singular_values=False,
+    predictive_stop=True,
 ):
     """The per-trial LM solver for one static configuration, chunked under ``vmap``
     (:func:`.batching.chunked_loop`; passes as the paper solver's)."""
@@ -236,11 +268,13 @@ def _lm_solver(
             ),
             jnp.asarray(False),  # converged
             finite_in,  # ok
+            # predictive stop: the proposal is taken unevaluated; the last ratio of two steps
+            (jnp.asarray(False), jnp.ones((), dtype)),
         )
         return state, (frames0, P, T, xi, noise)
 
     def running(state):
-        k, *_, (_, _, _, resolved), _, _, done, ok = state
+        k, *_, (_, _, _, resolved), _, _, done, ok, _ = state
         return (k < max_iterations) & ~done & ok & resolved
 
     def svd_steps(mode, T, n):
@@ -297,22 +331,53 @@ def _lm_solver(
     def body(it, mode, step, state, data):
         """One damped step where the trial still runs; the chunk's first pass (``it == 0``,
         always taken) evaluates the nominal model instead and tests the pose set there (``it``,
-        ``mode`` and ``step`` are the chunk's: real branches; a later pass without a step has
-        nothing left to evaluate)."""
-        return jax.lax.cond(step | (it == 0), lambda: _step(it, mode, state, data), lambda: state)
+        ``mode`` and ``step`` are the chunk's: real branches); the last pass, without a step,
+        takes the proposals that the predictive stop left to it. Every pass evaluates the model
+        at the proposed step first (the first pass: at the nominal model, ``dX = 0``)."""
+        _, P, T, _, _ = data
+        frames_t = kernels.step_frames(state[6][0], state[2])
+        tool, after = kernels.chain(frames_t, P)
+        model = (frames_t, after) + kernels.residual_and_metrics(T, tool)
+        return jax.lax.cond(
+            step | (it == 0),
+            lambda: _step(it, mode, state, data, model),
+            lambda: _take_pending(state, data, model) if predictive_stop else state,
+        )
 
-    def _step(it, mode, state, data):
-        k, u, frames, (cost, N, g), (damping, nu), bases, proposed, hist, done, ok = state
+    def _take_pending(state, data, model):
+        """The proposal of a trial that the predictive stop ended, taken where it does not
+        raise the cost; else the trial stays where it was, still pending (``finish`` has it
+        solved again). ``model``: the model evaluated at the proposal (``body``)."""
+        k, u, frames, (cost, N, g), damping, bases, proposed, hist, done, ok, ahead = state
+        pending, last_rate = ahead
+        steps, dps, dRs = hist
+        _, _, T, _, noise = data
+        dX = proposed[0]
+        frames_t, _, r, dp, dR = model
+        Yw = r if noise is None else kernels.whiten(r, T, noise)
+        cost_t = jnp.sum(Yw * Yw)
+        take = pending & (cost_t <= cost) & jnp.all(jnp.isfinite(frames_t))
+        hist = (
+            jnp.where(take, steps.at[k].set(jnp.linalg.norm(dX)), steps),
+            jnp.where(take, dps.at[k + 1].set(dp), dps),
+            jnp.where(take, dRs.at[k + 1].set(dR), dRs),
+        )
+        frames = jnp.where(take, frames_t, frames)
+        cost = jnp.where(take, cost_t, cost)
+        ahead = (pending & ~take, last_rate)
+        return (k + take, u, frames, (cost, N, g), damping, bases, proposed, hist, done, ok, ahead)
+
+    def _step(it, mode, state, data, model):
+        k, u, frames, (cost, N, g), (damping, nu), bases, proposed, hist, done, ok, ahead = state
+        pending, last_rate = ahead
         steps, dps, dRs = hist
         dX, scaled, predicted = proposed
         frames0, P, T, xi, noise = data
         first = it == 0
         trying = running(state) & ~first
-        # The model at the proposed step (the first pass: the nominal model), its normal
-        # equations, and whether the step is taken.
-        frames_t = kernels.step_frames(dX, frames)
-        tool, after = kernels.chain(frames_t, P)
-        r, dp, dR = kernels.residual_and_metrics(T, tool)
+        # The normal equations at the proposed step (the first pass: the nominal model), and
+        # whether the step is taken.
+        frames_t, after, r, dp, dR = model
         N_t, g_t, Yw = kernels.lm_normal_equations(after, r, T, noise)
         bases = jax.lax.cond(first, lambda: nominal(mode, N_t, after, T, noise), lambda: bases)
         cost_t = jnp.sum(Yw * Yw)
@@ -346,6 +411,23 @@ def _lm_solver(
         predicted_next = -(jnp.dot(g, dX_next) + 0.5 * jnp.dot(dX_next, N @ dX_next))
         scaled_next = jnp.sqrt(jnp.maximum(jnp.diagonal(N), 0.0)) * dX_next  # units of r~
         converged = _converged(scaled_next, u, predicted_next, cost, rtol, atol)
+        if predictive_stop:
+            # The step after the proposal, predicted from the last three (calibrate_lm).
+            rate = jnp.linalg.norm(scaled_next) / jnp.linalg.norm(scaled)
+            fast = trying & take & (rho > 0.75) & (rate < PREDICTIVE_RATE) & (mode == _FAST)
+            ratio = rate * jnp.minimum(1.0, rate / last_rate)  # after the proposal
+            small = _converged(
+                scaled_next * (ratio / PREDICTIVE_SLACK),
+                u + scaled_next,
+                predicted_next * rate * rate,
+                jnp.maximum(cost - 2.0 * predicted_next, 0.0),
+                rtol,
+                atol,
+            )
+            unevaluated = fast & small & (k + 1 < max_iterations) & ~converged
+            converged = converged | unevaluated
+            pending = pending | unevaluated
+            last_rate = jnp.where(trying & take, rate, last_rate)
         proposed = jax.tree.map(
             lambda a, b: jnp.where(live, a, b),
             (dX_next, scaled_next, predicted_next),
@@ -363,12 +445,15 @@ def _lm_solver(
             hist,
             done | (live & converged),
             ok & finite,
+            (pending, last_rate),
         )
 
     def finish(mode, state, data):
         """The solution of one trial, and whether it is to be redone with SVD steps (where the
-        fast steps are not resolved, or their rank is not that of the singular values)."""
-        k, _, frames, (cost, _, _), _, (_, _, step_rank, resolved), _, hist, done, ok = state
+        fast steps are not resolved, or their rank is not that of the singular values), or
+        without the predictive stop (where it left a proposal that raised the cost)."""
+        k, _, frames, (cost, _, _), _, bases, _, hist, done, ok, (pending, _) = state
+        _, _, step_rank, resolved = bases
         steps, dps, dRs = hist
         frames0, P, T, _, noise = data
         dtype = T.dtype
@@ -395,7 +480,8 @@ def _lm_solver(
         fast = normal_equations_apply(dtype, rcond, 6 * T.shape[-1], n)
         redo = (sol.result != RESULTS.nonfinite) & fast & (mode != _SVD)
         redo = redo & ((step_rank != rank) | ~resolved)
-        return sol, jnp.where(redo, _SVD, 0)
+        again = pending & (sol.result != RESULTS.nonfinite)
+        return sol, jnp.where(redo, _SVD, jnp.where(again, _CONTINUE, 0))
 
     return chunked_loop(
         init,

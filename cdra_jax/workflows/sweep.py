@@ -126,8 +126,8 @@ def sweep(
             interruption resumes where it stopped (same table; see
             :func:`cdra_jax.sweeps.run_sweep`).
         model_label: name of the model in the table's metadata.
-        predictive_stop: the paper and weighted solvers stop once the remaining steps are
-            predicted below their tolerance (the default; ``False``: the plain stop, see
+        predictive_stop: the solvers stop once the remaining steps are predicted below
+            their tolerances (the default; ``False``: the plain stop, see
             :func:`cdra_jax.sweeps.run_sweep`).
         processes: processes sharing the chunks (1: this one alone). More need
             ``checkpoint`` (the folder they all write to) and must start before JAX runs
