@@ -191,13 +191,14 @@ def calibrate_lm(
     solve), as the paper solver's predictive stop does. Once the iteration contracts fast (the
     step just evaluated was taken with a gain ratio above 3/4 and the proposal is below
     :data:`PREDICTIVE_RATE` of it), the step after the proposal is predicted from the last
-    three, its ratio to the proposal shrinking as the last ratio did; when it would pass the
-    step test of :func:`_converged` with tolerances :data:`PREDICTIVE_SLACK` times larger, the
-    proposal is taken without another pass (or when its predicted reduction of the cost passes
-    the cost test as it is), and the model is evaluated once at the end. Plain
-    LM takes that same step and then stops, or takes one more step of about that predicted
-    size. A proposal that would raise the cost is not taken: the trial is solved again from the
-    start without the predictive stop. ``False``: the tests of :func:`_converged` alone.
+    three, its ratio to the proposal shrinking as the last ratio did. When that step would pass
+    the step test of :func:`_converged` with tolerances :data:`PREDICTIVE_SLACK` times larger,
+    or its reduction of the cost (the proposal's times the square of the last ratio) the cost
+    test as it is, the proposal is taken without another pass, and the model is evaluated once
+    at the end. Plain LM takes that same step and then stops, or takes one more step of about
+    that predicted size. A proposal that would raise the cost is not taken: the trial is solved
+    again from the start without the predictive stop. ``False``: the tests of
+    :func:`_converged` alone.
     """
     null_modules, _ = null_generators(arm)
 
