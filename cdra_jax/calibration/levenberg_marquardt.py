@@ -373,7 +373,7 @@ def _lm_solver(
         pending, last_rate = ahead
         steps, dps, dRs = hist
         dX, scaled, predicted = proposed
-        frames0, P, T, xi, noise = data
+        _, _, T, xi, noise = data
         first = it == 0
         trying = running(state) & ~first
         # The normal equations at the proposed step (the first pass: the nominal model), and
