@@ -259,7 +259,7 @@ def _lm_solver(
             frames0,  # the frames
             (zero, jnp.zeros((n, n), dtype), jnp.zeros(n, dtype)),  # |r~|^2, J^T J, J^T r~
             (zero, jnp.asarray(2.0, dtype)),  # lambda, nu
-            # N_0, the basis of SVD steps, their rank, fast steps apply
+            # N_0, the basis of SVD steps (transposed), their rank, fast steps apply
             (eye, eye, jnp.asarray(n), jnp.asarray(True)),
             (jnp.zeros(n, dtype), jnp.zeros(n, dtype), zero),  # the next step dX, scaled, gain
             (
@@ -286,7 +286,7 @@ def _lm_solver(
         return jnp.asarray(True)
 
     def nominal(mode, N, after, T, noise):
-        """``(N_0, basis, rank, resolved)`` at the nominal model (normal equations ``N``): the
+        """``(N_0, basis^T, rank, resolved)`` at the nominal model (normal equations ``N``): the
         damping metric, and for SVD steps the identifiable basis of the SVD of ``D~``
         (:func:`_identifiable_basis`) and its rank (a real branch); for fast steps the rank is
         the generic one and ``resolved`` is decided by the first proposal's tests."""
@@ -296,7 +296,9 @@ def _lm_solver(
             DT = kernels.jacobian_transposed(after, T, noise)
             zero = jnp.zeros((), T.dtype)
             basis = _identifiable_basis(kernels.Linearisation(DT[0], DT, zero, zero), rcond)
-            return basis, jnp.sum(jnp.any(basis != 0, axis=0))
+            # Carried transposed, in the layout of the SVD's V^T: held as it is, XLA copied it
+            # into the other layout and back in every pass of the loop.
+            return basis.T, jnp.sum(jnp.any(basis != 0, axis=0))
 
         def generic():
             return jnp.eye(n, dtype=T.dtype), jnp.asarray(n - n_null)
@@ -311,7 +313,7 @@ def _lm_solver(
         of ``(J^T J + lambda N_0) dX = -J^T r~`` (:func:`.linear.null_space_solve`), or the
         same system in the identifiable basis (a real branch), projected off the structural
         null space."""
-        N0, basis, _, resolved = bases
+        N0, basis_t, _, resolved = bases
         n = N.shape[0]
         Z = null_basis(frames, null_modules, xi)
 
@@ -321,6 +323,7 @@ def _lm_solver(
             return x, jnp.where(first, trusted & jnp.all(jnp.isfinite(x)), resolved)
 
         def in_basis():
+            basis = basis_t.T
             used = jnp.any(basis != 0, axis=0)
             A = basis.T @ ((N + damping * N0) @ basis) + jnp.diag(jnp.where(used, 0.0, 1.0))
             du = jax.scipy.linalg.cho_solve((cholesky_of_symmetric(A), True), basis.T @ g)
