@@ -379,8 +379,9 @@ def normal_equations(
     Ad(Tr(-p_meas))``, so ``G Ad(P) = S Ad(P')`` with ``P'`` the pose moved by ``-p_meas`` and
     ``S = diag(I / s_pos, I / s_rot)``). So ``N = V^T V + W^T W`` with ``V`` the translation
     rows (all ``n`` parameters: ``[R, H] / s_pos`` per block) and ``W`` the rotation rows of
-    the rotation parameters only (``R / s_rot``): 5/8 of the multiplications of ``D~^T D~``
-    and no zero block.
+    the rotation parameters only (``R / s_rot``), which are those of ``V``'s translation
+    parameters times ``s_pos / s_rot``: ``W^T W`` is read off ``V^T V`` (:func:`_split_gram`),
+    half the multiplications of ``D~^T D~`` and no zero block.
 
     Args:
         after: ``(K, 3, 4, m)`` world poses before each fixed frame after the first (``after``
@@ -396,11 +397,10 @@ def normal_equations(
     H = _hat_times(p, R)
     # V (K+1, 6, 3, m): parameter (v, w) of each block, then the translation row and the pose
     V = jnp.concatenate([jnp.swapaxes(R, 1, 2), jnp.swapaxes(H, 1, 2)], axis=1)
-    W = jnp.swapaxes(R, 1, 2)  # (K+1, 3, 3, m): rotation parameters, rotation rows
-    if noise is not None:
-        V = V / jnp.asarray(noise.position_mm, dtype)
-        W = W / jnp.asarray(noise.rotation_rad, dtype)
-    return _split_gram(V, W, Y)
+    if noise is None:
+        return _split_gram(V, Y)
+    sp = jnp.asarray(noise.position_mm, dtype)
+    return _split_gram(V / sp, Y, sp / jnp.asarray(noise.rotation_rad, dtype))
 
 
 def lm_normal_equations(
@@ -425,20 +425,18 @@ def lm_normal_equations(
     """
     dtype = after.dtype
     _, Q, Ji = se3_left_jacobian_blocks(-r)  # J_r^-1(r) = J_l^-1(-r) = [[Ji, -Ji Q Ji], [0, Ji]]
-    a, b, c = Ji, -_matmul3(_matmul3(Ji, Q), Ji), Ji
-    rw = r
+    a, b = Ji, -_matmul3(_matmul3(Ji, Q), Ji)  # c = a: the rotation rows (_split_gram)
+    rw, rotation_scale = r, None
     if noise is not None:  # G = S [[I, -hat(p_meas)], [0, I]], S = diag(I / s_pos, I / s_rot)
         sp = jnp.asarray(noise.position_mm, dtype)
-        sr = jnp.asarray(noise.rotation_rad, dtype)
         b = (b - _matmul3(_hat(measured[:, 3]), Ji)) / sp
-        a, c = a / sp, c / sr
+        a = a / sp
+        rotation_scale = sp / jnp.asarray(noise.rotation_rad, dtype)  # c R = (a R) s_pos / s_rot
         rw = whiten(r, measured, noise)
     R, p = _blocks(after)
     H = _hat_times(p, R)
-    aR = _rows_times(a, R)
-    V = jnp.concatenate([aR, _rows_times(a, H) + _rows_times(b, R)], axis=1)
-    W = aR if noise is None else _rows_times(c, R)
-    N, g = _split_gram(V, W, rw)
+    V = jnp.concatenate([_rows_times(a, R), _rows_times(a, H) + _rows_times(b, R)], axis=1)
+    N, g = _split_gram(V, rw, rotation_scale)
     return N, -g, rw  # the sign of J on g
 
 
@@ -469,18 +467,33 @@ def _hat_times(p: Array, R: Array) -> Array:
     return jnp.stack(_cross(jnp.moveaxis(p, 1, 0)[:, :, None], jnp.moveaxis(R, 1, 0)), axis=1)
 
 
-def _split_gram(V: Array, W: Array, Y: Array) -> tuple[Array, Array]:
+def _split_gram(V: Array, Y: Array, rotation_scale: Array | None = None) -> tuple[Array, Array]:
     """``N = V^T V + W^T W``, ``g = V^T Y_v + W^T Y_w`` (see :func:`normal_equations`) from the
-    translation rows ``V (K+1, 6, 3, m)`` of every parameter and the rotation rows
-    ``W (K+1, 3, 3, m)`` of the rotation parameters (parameter block, parameter, row, pose), and
-    the residual ``Y (6, m)``."""
+    translation rows ``V (K+1, 6, 3, m)`` of every parameter (parameter block, parameter, row,
+    pose) and the residual ``Y (6, m)``, where ``W``, the rotation rows of the rotation
+    parameters, is ``rotation_scale`` (``None``: 1; a scalar or one per pose, ``(m,)``) times
+    the translation rows of the translation parameters, ``V[:, :3]`` (true of ``D~`` and of LM's
+    ``J``: those rows are ``a R`` and ``c R``, with ``c = a`` up to the whitening's scales).
+    With one scale for all poses, ``W^T W`` is the translation-translation block of ``V^T V``
+    times its square, without a product of its own."""
     k1, m = V.shape[0], V.shape[-1]
-    V = V.reshape(6 * k1, 3 * m)
-    W = W.reshape(3 * k1, 3 * m)
     Yv, Yw = Y[:3].reshape(3 * m), Y[3:].reshape(3 * m)
+    W = V[:, :3]
+    per_pose = rotation_scale is not None and jnp.ndim(rotation_scale) > 0
+    if rotation_scale is not None and per_pose:
+        W = W * rotation_scale
+    W = W.reshape(3 * k1, 3 * m)
+    V = V.reshape(6 * k1, 3 * m)
     N = (V @ V.T).reshape(k1, 2, 3, k1, 2, 3)
-    N = N.at[:, 1, :, :, 1, :].add((W @ W.T).reshape(k1, 3, k1, 3))
-    g = (V @ Yv).reshape(k1, 2, 3).at[:, 1].add((W @ Yw).reshape(k1, 3))
+    if per_pose:
+        NW = (W @ W.T).reshape(k1, 3, k1, 3)
+    else:
+        NW = N[:, 0, :, :, 0, :]
+    gw = W @ Yw
+    if rotation_scale is not None and not per_pose:
+        NW, gw = NW * (rotation_scale * rotation_scale), gw * rotation_scale
+    N = N.at[:, 1, :, :, 1, :].add(NW)
+    g = (V @ Yv).reshape(k1, 2, 3).at[:, 1].add(gw.reshape(k1, 3))
     n = 6 * k1
     return N.reshape(n, n), g.reshape(n)
 
