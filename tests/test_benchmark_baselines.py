@@ -131,3 +131,48 @@ def test_throughput_scaling_mode_generates_in_blocks_and_reports(cdra, capsys, m
     for row in (row_n, row_m):
         assert row["paper"] > 0 and row["paper_compile_s"] > 0 and row["paper_repeats"] == 1
     assert len(report["machine"]["load_average"]) == 3
+
+
+def test_profile_split_takes_each_thunk_exclusive_of_the_thunks_inside_it(tmp_path):
+    """benchmarks/profile_split.py: an event's exclusive time is its duration less that of the
+    events nested in it on the same thread, and every thunk falls in one group."""
+    import gzip
+
+    split = _load("profile_split")
+
+    def event(name, ts, dur, tid=1):
+        return {"ph": "X", "name": name, "ts": ts, "dur": dur, "pid": 1, "tid": tid}
+
+    events = [
+        event("cond.3", 0, 100),
+        event("ynn_fusion.2", 10, 30),
+        event("ThunkExecutor::Execute", 50, 40),
+        event("cholesky.9", 55, 20),
+        event("copy.5", 0, 70, tid=2),  # another thread: nothing nested
+        event("multiply_add_fusion.1", 200, 5),
+        {"ph": "M", "name": "thread_name", "pid": 1, "tid": 1},  # metadata: ignored
+    ]
+    trace = tmp_path / "perfetto_trace.json.gz"
+    with gzip.open(trace, "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    times = split.exclusive_times(trace)
+    assert times == {
+        "cond.3": 30,
+        "ynn_fusion.2": 30,
+        "ThunkExecutor::Execute": 20,
+        "cholesky.9": 20,
+        "copy.5": 70,
+        "multiply_add_fusion.1": 5,
+    }
+    groups = {name: split._group(name) for name in times}
+    assert groups == {
+        "cond.3": "control flow",
+        "ynn_fusion.2": "matrix products",
+        "ThunkExecutor::Execute": "dispatch",
+        "cholesky.9": "LAPACK",
+        "copy.5": "copies",
+        "multiply_add_fusion.1": "element-wise",
+    }
+    assert split._group("$api.py:2479 block_until_ready") is None
+    assert split._group("ThunkExecutor::Execute (wait for completion)") is None
+    assert set(groups.values()) == set(split.GROUPS)
