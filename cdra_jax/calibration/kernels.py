@@ -478,22 +478,17 @@ def _split_gram(V: Array, Y: Array, rotation_scale: Array | None = None) -> tupl
     times its square, without a product of its own."""
     k1, m = V.shape[0], V.shape[-1]
     Yv, Yw = Y[:3].reshape(3 * m), Y[3:].reshape(3 * m)
-    W = V[:, :3]
-    per_pose = rotation_scale is not None and jnp.ndim(rotation_scale) > 0
-    if rotation_scale is not None and per_pose:
-        W = W * rotation_scale
-    W = W.reshape(3 * k1, 3 * m)
-    V = V.reshape(6 * k1, 3 * m)
-    N = (V @ V.T).reshape(k1, 2, 3, k1, 2, 3)
-    if per_pose:
-        NW = (W @ W.T).reshape(k1, 3, k1, 3)
+    rows = V.reshape(6 * k1, 3 * m)
+    N = (rows @ rows.T).reshape(k1, 2, 3, k1, 2, 3)
+    if rotation_scale is not None and jnp.ndim(rotation_scale) > 0:  # one scale per pose
+        W = (V[:, :3] * rotation_scale).reshape(3 * k1, 3 * m)
+        NW, gw = (W @ W.T).reshape(k1, 3, k1, 3), W @ Yw
     else:
-        NW = N[:, 0, :, :, 0, :]
-    gw = W @ Yw
-    if rotation_scale is not None and not per_pose:
-        NW, gw = NW * (rotation_scale * rotation_scale), gw * rotation_scale
+        NW, gw = N[:, 0, :, :, 0, :], V[:, :3].reshape(3 * k1, 3 * m) @ Yw
+        if rotation_scale is not None:
+            NW, gw = NW * (rotation_scale * rotation_scale), gw * rotation_scale
     N = N.at[:, 1, :, :, 1, :].add(NW)
-    g = (V @ Yv).reshape(k1, 2, 3).at[:, 1].add(gw.reshape(k1, 3))
+    g = (rows @ Yv).reshape(k1, 2, 3).at[:, 1].add(gw.reshape(k1, 3))
     n = 6 * k1
     return N.reshape(n, n), g.reshape(n)
 
