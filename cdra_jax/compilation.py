@@ -267,3 +267,16 @@ def enable_persistent_cache(path: str | None = None) -> str:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return folder
+
+
+def batched_like(ref: jax.Array, tree):
+    """``tree`` unchanged, every leaf made to depend on ``ref`` (a value computed from a trial's
+    inputs), so that under ``vmap`` the leaves are batched from the start.
+
+    For the initial carry of a ``while_loop`` whose body makes these leaves batched: JAX batches
+    a loop body again whenever the batched-ness of the carry changes in the body (a fixed point),
+    so a carry that starts unbatched (zeros, NaN histories, a ``False`` flag) costs a second
+    batching pass over the whole body at trace time. ``where(ref, x, x)`` is ``x`` (XLA folds
+    it away), so the compiled program and the results are unchanged.
+    """
+    return jax.tree.map(lambda x: jax.numpy.where(ref, x, x), tree)

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from _devices import run_on_two_cpu_devices
 
-from cdra_jax.calibration.batching import batched_like, chunked_vmap, two_pass
+from cdra_jax.calibration.batching import chunked_vmap, two_pass
+from cdra_jax.compilation import batched_like
 
 
 def _newton_sqrt(a, x0, tol):

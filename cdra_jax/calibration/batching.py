@@ -323,16 +323,3 @@ def _traced_once(fn: Callable, *args):
         return jax.tree.unflatten(out_tree, [jnp.asarray(x) for x in flat])
 
     return replay, out_shape
-
-
-def batched_like(ref: jax.Array, tree):
-    """``tree`` unchanged, every leaf made to depend on ``ref`` (a value computed from a trial's
-    inputs), so that under ``vmap`` the leaves are batched from the start.
-
-    For the initial carry of a ``while_loop`` whose body makes these leaves batched: JAX batches
-    a loop body again whenever the batched-ness of the carry changes in the body (a fixed point),
-    so a carry that starts unbatched (zeros, NaN histories, a ``False`` flag) costs a second
-    batching pass over the whole body at trace time. ``where(ref, x, x)`` is ``x`` (XLA folds
-    it away), so the compiled program and the results are unchanged.
-    """
-    return jax.tree.map(lambda x: jnp.where(ref, x, x), tree)

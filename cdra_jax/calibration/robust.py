@@ -83,8 +83,8 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, error_twists, module_poses
+from ..compilation import batched_like
 from . import implicit
-from .batching import batched_like
 from .gauss_newton import calibrate_paper
 from .levenberg_marquardt import calibrate_lm
 from .model import NoiseModel, deviation_metrics, residual_twist, whitening
