@@ -270,7 +270,7 @@ def enable_persistent_cache(path: str | None = None) -> str:
 
 
 def batched_like(ref: jax.Array, tree):
-    """``tree`` unchanged, every leaf made to depend on ``ref`` (a value computed from a trial's
+    """``tree`` unchanged, every leaf made to depend on ``ref`` (a scalar computed from a trial's
     inputs), so that under ``vmap`` the leaves are batched from the start.
 
     For the initial carry of a ``while_loop`` whose body makes these leaves batched: JAX batches

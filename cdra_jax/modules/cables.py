@@ -43,6 +43,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Module
+from ..compilation import batched_like
 from ._linalg import small_solve
 from ._results import select
 
@@ -325,11 +326,12 @@ def _gauss_newton(
         done = done | (norm < tol) | ~jnp.isfinite(norm)
         return k + 1, x, done, iters
 
+    # The carry batched from the start under vmap: JAX batches the body once less.
     init = (
         jnp.asarray(0),
-        x0,
-        jnp.zeros(batch, bool),
-        jnp.zeros(batch, jnp.int32),
+        *batched_like(
+            target.reshape(-1)[0], (x0, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32))
+        ),
     )
     _, x, done, iters = jax.lax.while_loop(cond, body, init)
     iters = jnp.where(done, iters, max_iterations)

@@ -63,6 +63,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm, Module
 from ..calibration.linear import default_rcond
+from ..compilation import batched_like
 from ..identifiability import format_combination, sparse_basis
 from ._linalg import small_inv
 from ._results import select
@@ -380,8 +381,8 @@ def self_calibrate(
         )
 
     finite_in = jnp.all(jnp.isfinite(lengths)) & jnp.all(jnp.isfinite(x0))
-    init = (
-        jnp.asarray(0),
+    # The carry batched from the start under vmap: JAX batches the body once less.
+    rest = (
         nominal,
         x0,
         jnp.asarray(0.0, dtype),
@@ -391,6 +392,7 @@ def self_calibrate(
         jnp.asarray(False),
         finite_in,
     )
+    init = (jnp.asarray(0), *batched_like(finite_in, rest))
     k, theta, x, _, _, steps, rmss, done, ok = jax.lax.while_loop(cond, body, init)
     theta, x = _fix_gauge(module, nominal, theta, x)
     rms = rms_of(theta, x)

@@ -38,6 +38,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, Module, chain, module_poses
+from ..compilation import batched_like
 from ._results import select
 from .tension import structure_matrix
 
@@ -261,7 +262,9 @@ def distribute_tensions(
         iters = jnp.where(done | conv, iters, k + 1)
         return k + 1, lam, done | conv | ~jnp.all(jnp.isfinite(new), axis=-1), iters
 
-    init = (jnp.asarray(0), lam0, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32))
+    # The carry batched from the start under vmap: JAX batches the body once less.
+    rest = (lam0, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32))
+    init = (jnp.asarray(0), *batched_like(lam0.reshape(-1)[0], rest))
     _, lam, _, iters = jax.lax.while_loop(cond, body, init)
     # Polish: one undamped Newton step on the final active set solves the piecewise-linear
     # optimality conditions to round-off when the active set is the optimal one.
