@@ -4,6 +4,7 @@ The recordings are made with this package's own effect models (tests/_physics_da
 independent check is the benchmark's concealed simulator.
 """
 
+import functools
 import json
 
 import jax.numpy as jnp
@@ -13,7 +14,7 @@ import scipy.stats
 from _physics_data import NOISE, BrokenEffect, base, find, recordings
 
 from cdra_jax.cli import main
-from cdra_jax.diagnosis import diagnose, diagnose_files, stats
+from cdra_jax.diagnosis import diagnose, diagnose_files, model, stats
 from cdra_jax.io import Measurements, save_measurements
 from cdra_jax.physics import corrected_tool_pose
 
@@ -145,6 +146,34 @@ def test_variance_components_estimate_position_and_rotation_noise_separately():
 # ----------------------------------------------------------------------------- diagnosis
 
 
+@functools.cache
+def _diagnosis(effect=None, values=(), noise=NOISE, *, seed=1, fold_seed=0, distortion=None):
+    """``diagnose`` of the shared recordings (``recordings(effect, values, seed=seed,
+    distortion=distortion)``) of the base arm with ``noise`` and the fold seed ``fold_seed``,
+    once per module: several tests check different properties of the same diagnosis. Also
+    returns the last ``(y, problem)`` whose full Jacobian the diagnosis formed
+    (:func:`cdra_jax.diagnosis.model.residual_and_jacobian`; ``None`` if it formed none)."""
+    problems = []
+    full = model.residual_and_jacobian
+
+    def spy(y, problem):
+        problems.append((y, problem))
+        return full(y, problem)
+
+    meas = recordings(effect, list(values), seed=seed, distortion=distortion)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(model, "residual_and_jacobian", spy)
+        d = diagnose(base().arm, meas, noise, seed=fold_seed)
+    return d, (problems[-1] if problems else None)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _forget_the_shared_diagnoses():
+    """Drop the diagnoses that :func:`_diagnosis` keeps when the module ends."""
+    yield
+    _diagnosis.cache_clear()
+
+
 def _check_contract(d):
     out = d.to_dict()
     assert CONTRACT_KEYS <= set(out)
@@ -159,7 +188,7 @@ def _check_contract(d):
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_clean_recordings_give_none(seed):
-    d = diagnose(base().arm, recordings(seed=seed), NOISE, seed=seed)
+    d, _ = _diagnosis(seed=seed, fold_seed=seed)
     out = _check_contract(d)
     assert (d.effect, d.mismatch, d.located_in) == ("none", False, None)
     assert d.p_value >= 0.01
@@ -182,7 +211,7 @@ CASES = [
 @pytest.mark.parametrize("name, location, variant, values", CASES)
 def test_injected_effect_is_found_where_it_is(name, location, variant, values):
     c = find(name, location, variant)
-    d = diagnose(base().arm, recordings(c, values), NOISE)
+    d, _ = _diagnosis(c, tuple(values))
     out = _check_contract(d)
     assert d.mismatch and d.p_value < 1e-6
     assert (d.effect, d.located_in) == (name, location), d.report + "\n" + d.table()
@@ -219,7 +248,8 @@ def test_a_richer_form_is_refitted_and_reaches_the_noise_floor():
 
 def test_uniform_length_scale_is_absorbed():
     b = base()
-    frames = jnp.asarray(b.actual.frames).at[:, :3, 3].multiply(1.01)
+    frames = np.array(b.actual.frames)
+    frames[:, :3, 3] *= 1.01
     d = diagnose(b.arm, recordings(actual=b.actual.with_frames(frames)), NOISE)
     assert (d.effect, d.mismatch) == ("none", False)
 
@@ -227,9 +257,10 @@ def test_uniform_length_scale_is_absorbed():
 def test_out_of_library_distortion_is_unattributed():
     # a tool translation that grows with the product of two wrist angles: no effect's form
     def distortion(q):
+        q = np.asarray(q)
         v = 0.5 * q[:, 4] * q[:, 5]
-        z = jnp.zeros_like(v)
-        return jnp.stack([v, z, z, z, z, z], -1)
+        z = np.zeros_like(v)
+        return np.stack([v, z, z, z, z, z], -1)
 
     d = diagnose(base().arm, recordings(distortion=distortion), NOISE)
     assert d.mismatch and d.effect == "unattributed", d.report
@@ -266,7 +297,7 @@ def test_exactly_repeated_exact_poses_give_none(noise):
     the misfit is rounding, and nothing is missing."""
     b = base()
     idx = np.repeat(np.arange(10), 3)
-    T = corrected_tool_pose(b.actual, b.q, b.F, jnp.zeros(b.F.n_params))
+    T = corrected_tool_pose(b.actual, b.q, b.F, np.zeros(b.F.n_params))
     aux = {k: np.asarray(v)[idx] for k, v in b.aux.items()}
     meas = Measurements.from_arrays(b.arm, np.asarray(b.q)[idx], np.asarray(T)[idx], aux=aux)
     d = diagnose(b.arm, meas, noise)
@@ -441,8 +472,10 @@ def test_the_refit_model_predicts_poses_the_diagnosis_never_saw(tmp_path, capsys
     """diagnose --model-out writes the fitted frames plus the found effect as [[effects]];
     validate predicts new poses with it far better than with the geometric calibration of the
     same recording, close to the noise."""
+    import equinox as eqx
     import jax
 
+    from cdra_jax.diagnosis.model import all_features
     from cdra_jax.io import load_model
     from cdra_jax.modules.tension import sample_feasible_states
 
@@ -450,9 +483,15 @@ def test_the_refit_model_predicts_poses_the_diagnosis_never_saw(tmp_path, capsys
     values = [0.002, 0.001]
     b = base()
     fit = save_measurements(recordings(c, values), tmp_path / "fit.csv")
-    # 30 other poses of the same arm and effect (the same shapes: no new compilation)
-    q = np.asarray(sample_feasible_states(jax.random.PRNGKey(77), b.arm, 30))
-    T = np.array(c.tool_pose(b.actual, q, b.aux, jnp.asarray(values)))
+    # 30 other poses of the same arm and effect, made as the shared recordings are (the same
+    # programs and shapes: no new compilation)
+    q = eqx.filter_jit(sample_feasible_states)(jax.random.PRNGKey(77), b.arm, 30)
+    theta = np.zeros(b.F.n_params)
+    theta[b.cols[c]] = values
+    T = np.array(
+        corrected_tool_pose(b.actual, q, all_features(b.everything, b.actual, q, b.aux), theta)
+    )
+    q = np.asarray(q)
     rng = np.random.default_rng(78)
     T[:, :3, 3] += NOISE.position_mm * rng.standard_normal((30, 3))
     aux = {k: np.asarray(v) for k, v in b.aux.items()}
@@ -484,7 +523,7 @@ def test_a_model_with_the_found_effect_explains_new_recordings():
     arm with it fits the effect with the frames (part of the base model), finds nothing more
     and skips that candidate; the effect's values are refitted."""
     c = find("periodic_error", "elbow", "k=2")
-    first = diagnose(base().arm, recordings(c, [0.002, 0.001]), NOISE)
+    first, _ = _diagnosis(c, (0.002, 0.001))
     assert (first.effect, first.located_in) == ("periodic_error", "elbow")
     model = first.refit_arm
     assert [(e.name, e.location, e.variant) for e in model.effects] == [
@@ -524,9 +563,9 @@ def test_a_candidate_that_fails_numerically_is_marked_failed_and_the_diagnosis_g
 
 def _tanh_stretch(q):
     """A saturating transmission stretch at the elbow (no effect of the vocabulary has it)."""
-    v = 0.3 * jnp.tanh(2 * q[:, 3])
-    z = jnp.zeros_like(v)
-    return jnp.stack([v, v, z, z, z, z], -1)
+    v = 0.3 * np.tanh(2 * np.asarray(q)[:, 3])
+    z = np.zeros_like(v)
+    return np.stack([v, v, z, z, z, z], -1)
 
 
 @pytest.mark.parametrize("case", ["clean", "compliance", "saturating"])
@@ -538,16 +577,16 @@ def test_the_verdict_does_not_depend_on_the_noise_values(case):
     again with the noise estimated from that refit)."""
     from cdra_jax import NoiseModel
 
-    if case == "clean":
-        meas, expected = recordings(seed=1), ("none", None)
+    if case == "clean":  # the recordings and folds of test_clean_recordings_give_none[1]
+        kw, expected = {"fold_seed": 1}, ("none", None)
     elif case == "compliance":
-        meas = recordings(find("joint_compliance", "shoulder"), [4e-7])
+        kw = {"effect": find("joint_compliance", "shoulder"), "values": (4e-7,)}
         expected = ("joint_compliance", "shoulder")
     else:
-        meas, expected = recordings(distortion=_tanh_stretch), ("unattributed", "elbow")
+        kw, expected = {"distortion": _tanh_stretch}, ("unattributed", "elbow")
     for k in (0.7, 1.0, 1.3):
         noise = NoiseModel(NOISE.position_mm * k, NOISE.rotation_rad * k)
-        d = diagnose(base().arm, meas, noise)
+        d, _ = _diagnosis(noise=noise, **kw)
         assert (d.effect, d.located_in) == expected, (k, d.report)
         if case == "clean":
             text = "noisier than stated" if k == 0.7 else "consistent with the residuals"
@@ -592,29 +631,24 @@ def test_a_misfit_that_changes_with_time_is_placed_at_the_frame_whose_time_probe
     assert len(probe.parameters(arm)) == 6 and f.n_params > 0
 
 
-def test_refit_columns_are_those_of_the_full_jacobian(monkeypatch):
+def test_refit_columns_are_those_of_the_full_jacobian():
     """The Jacobian's columns (forward mode, in blocks of COLUMN_BUCKET lanes; the refit's
     steps take only the free ones) equal those of jax.jacfwd of the whitened residual, for
     column sets that fill a block exactly, part of one, more than one, and all of them."""
     import jax
 
-    from cdra_jax.diagnosis import model
-
-    problems = []
-    full = model.residual_and_jacobian
-
-    def spy(y, problem):
-        problems.append((y, problem))
-        return full(y, problem)
-
-    monkeypatch.setattr(model, "residual_and_jacobian", spy)
     c = find("periodic_error", "elbow", "k=2")
-    diagnose(base().arm, recordings(c, [0.002, 0.001]), NOISE)
-    y, problem = problems[-1]
-    y = y + 1e-3 * jnp.sin(jnp.arange(y.shape[0]))  # away from the fit, every entry moved
-    residual = jax.jit(lambda yy: model.whitened_residual(yy, problem))
-    r, J = residual(y), jax.jit(jax.jacfwd(residual))(y)
-    r_all, J_all = full(y, problem)
+    _, (y, problem) = _diagnosis(c, (0.002, 0.001))
+    # away from the fit, every entry moved
+    y = jnp.asarray(np.asarray(y) + 1e-3 * np.sin(np.arange(y.shape[0])))
+
+    def residual_twice(yy):
+        r = model.whitened_residual(yy, problem)
+        return r, r
+
+    J, r = jax.jit(jax.jacfwd(residual_twice, has_aux=True))(y)  # one program for both
+    r, J = np.asarray(r), np.asarray(J)
+    r_all, J_all = model.residual_and_jacobian(y, problem)
     np.testing.assert_allclose(r_all, r, rtol=0, atol=1e-12 * float(np.max(np.abs(r))))
     np.testing.assert_allclose(J_all, J, rtol=0, atol=1e-12 * float(np.max(np.abs(J))))
     rng = np.random.default_rng(0)

@@ -226,7 +226,7 @@ def test_calibrate_refines_the_effects_with_the_frames(truth, calibrated, tmp_pa
 def test_calibrate_with_effects_from_points(truth):
     """A laser tracker's points (the tool origin, some rows occluded) refine the effects too;
     the tool frame's rotation, which points at the origin do not see, stays in the gauge."""
-    run = simulate(truth, 40, seed=4, d_w=0.01, points=True)
+    run = simulate(truth, 30, seed=4, d_w=0.01, points=True)
     start = truth.with_effects([e.with_values([0.0] * len(e.parameters)) for e in truth.effects])
     cal = calibrate(start, run.measurements)
     assert cal.converged and cal.trusted
@@ -237,25 +237,29 @@ def test_calibrate_with_effects_from_points(truth):
     assert v.to_dict()["position_error_mm"]["max"] < 1e-6
 
 
-def test_calibrate_with_effects_refuses_rough_markers_and_robust_losses(truth):
+def test_calibrate_with_effects_refuses_rough_markers_and_robust_losses(truth, clean_run):
+    """A marker with calibrate = true (its points measured on the simulated tool poses) and a
+    robust loss are refused for a model with effects."""
     from cdra_jax.arm import Marker
+    from cdra_jax.io import Measurements
 
-    marked = truth.with_markers([Marker("m1", (0.0, 40.0, 20.0), calibrate=True)])
-    pts = simulate(marked, 12, seed=1, points=True, errors="zero").measurements
+    xyz = np.array([0.0, 40.0, 20.0])
+    marked = truth.with_markers([Marker("m1", tuple(xyz), calibrate=True)])
+    meas = clean_run.measurements
+    T = np.asarray(meas.measured)
+    m1 = T[:, :3, :3] @ xyz + T[:, :3, 3]
+    pts = Measurements.from_arrays(marked, meas.q, None, aux=meas.aux, points={"m1": m1})
     with pytest.raises(ValueError, match=r"markers m1 have calibrate = true"):
         calibrate(marked, pts)
     with pytest.raises(ValueError, match=r"robust losses"):
-        calibrate(truth, simulate(truth, 12, seed=1).measurements, loss="huber")
+        calibrate(truth, meas, loss="huber")
 
 
-def test_model_tool_pose_without_effects_is_the_chain(truth):
-    import jax
-
+def test_model_tool_pose_without_effects_is_the_chain(truth, clean_run):
     from cdra_jax.arm import tool_pose
-    from cdra_jax.simulation import sample_poses
 
     arm = truth.with_effects(())
-    q = sample_poses(jax.random.PRNGKey(0), arm, 4)
+    q = clean_run.measurements.q  # 30 sampled feasible poses
     # To rounding, not bitwise: the two are separate programs, and how XLA fuses them (its
     # optimisation level, the device) decides the last bit (1 ulp of a 93 mm entry at O1-O3).
     np.testing.assert_allclose(
