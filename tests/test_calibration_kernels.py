@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -44,15 +46,32 @@ NOISE = NoiseModel(position_mm=0.05, rotation_rad=1e-3)
 
 
 @eqx.filter_jit
-def _problem_jit(arm, seed, m, noise):
-    q, T, _, _, X = simulation.simulate_trial(jax.random.PRNGKey(seed), arm, m, noise=noise)
-    P = jnp.moveaxis(module_poses(arm, q)[..., :3, :], 0, -1)
-    return q, T, P, kernels.pose_stack(T), X
+def _simulate(arm, keys, noise):
+    """:func:`simulation.simulate_trial` of 15 poses with ``noise`` for each key, and for each
+    trial the module poses pose-last ``P``, the measured poses as :func:`kernels.pose_stack`,
+    and the poses without the noise, both ways: one compiled simulation for the module."""
+
+    def one(k):
+        q, T, _, _, X = simulation.simulate_trial(k, arm, 15, noise=noise)
+        P = jnp.moveaxis(module_poses(arm, q)[..., :3, :], 0, -1)
+        T_clean = tool_pose(apply_frame_errors(arm, X), q)
+        return q, T, P, kernels.pose_stack(T), X, T_clean, kernels.pose_stack(T_clean)
+
+    return jax.vmap(one)(keys)
 
 
-def _problem(arm, seed, m=15, noise=None):
-    # the seed as an array: one compiled generator for all seeds (a Python int is static)
-    return _problem_jit(arm, jnp.asarray(seed), m, noise)
+@pytest.fixture(scope="module")
+def trials(cdra):
+    """48 trials of 15 poses of the paper's arm, as :func:`_simulate` gives them (``NOISE``),
+    as numpy arrays."""
+    keys = jax.random.split(jax.random.PRNGKey(11), 48)
+    return tuple(np.asarray(x) for x in _simulate(cdra, keys, NOISE))
+
+
+def _problem(trials, i, noisy=True):
+    """Trial ``i`` of ``trials``: ``(q, T, P, Ts, X)``, measured with ``NOISE`` or without."""
+    q, T, P, Ts, X, T_clean, Ts_clean = (x[i] for x in trials)
+    return (q, T, P, Ts, X) if noisy else (q, T_clean, P, Ts_clean, X)
 
 
 @eqx.filter_jit
@@ -65,37 +84,52 @@ def _both_normal_equations(frames, P, Ts, noise):
     return fast, kernels.linearise(frames, P, Ts, noise).normal_equations()
 
 
+@eqx.filter_jit
+def _metrics(arm, q, T):
+    """The deviation metrics (Eqs. 20-21) of the arm's tool poses at ``q`` from ``T``."""
+    return deviation_metrics(T, tool_pose(arm, q))
+
+
 @pytest.mark.parametrize("noise", [None, NOISE], ids=["paper", "weighted"])
-def test_linearise_is_the_stacked_system(cdra, noise):
-    q, T, P, Ts, X = _problem(cdra, 1, noise=NOISE)
+def test_linearise_is_the_stacked_system(cdra, trials, noise):
+    q, T, P, Ts, X = _problem(trials, 1)
     frames = apply_frame_errors(cdra, 0.5 * X).frames  # not the nominal model
     lin = eqx.filter_jit(kernels.linearise)(frames, P, Ts, noise)
-    Y, D = eqx.filter_jit(stacked_system)(cdra.with_frames(frames), q, T, noise)
+    Y, D = (
+        np.asarray(x) for x in eqx.filter_jit(stacked_system)(cdra.with_frames(frames), q, T, noise)
+    )
     Yk, Dk = lin.stacked()
-    scale = float(jnp.max(jnp.abs(D)))
-    np.testing.assert_allclose(Yk, Y, rtol=0, atol=1e-12 * max(1.0, float(jnp.max(jnp.abs(Y)))))
+    scale = float(np.max(np.abs(D)))
+    np.testing.assert_allclose(Yk, Y, rtol=0, atol=1e-12 * max(1.0, float(np.max(np.abs(Y)))))
     np.testing.assert_allclose(Dk, D, rtol=0, atol=1e-13 * scale)
     N, g = lin.normal_equations()
     np.testing.assert_allclose(N, D.T @ D, rtol=0, atol=1e-13 * scale**2)
     np.testing.assert_allclose(g, D.T @ Y, rtol=1e-12, atol=1e-12 * scale)
     # The same from the nonzero rows only (the fast step's; weighted: per-pose noise).
-    nm = None if noise is None else NoiseModel(jnp.linspace(0.04, 0.06, 15), 1e-3)
+    nm = None if noise is None else NoiseModel(np.linspace(0.04, 0.06, 15), 1e-3)
     (N_s, g_s), (N_d, g_d) = _both_normal_equations(frames, P, Ts, nm)
-    np.testing.assert_allclose(N_s, N_d, rtol=0, atol=1e-13 * float(jnp.abs(N_d).max()))
-    np.testing.assert_allclose(g_s, g_d, rtol=0, atol=1e-13 * float(jnp.abs(g_d).max()))
+    np.testing.assert_allclose(N_s, N_d, rtol=0, atol=1e-13 * float(np.abs(N_d).max()))
+    np.testing.assert_allclose(g_s, g_d, rtol=0, atol=1e-13 * float(np.abs(g_d).max()))
     # Eqs. 20-21 (the rotation metric from the residual's logarithm).
-    tool = eqx.filter_jit(tool_pose)(cdra.with_frames(frames), q)
-    dp, dR = deviation_metrics(T, tool)
+    dp, dR = _metrics(cdra.with_frames(frames), q, T)
     np.testing.assert_allclose([lin.delta_p, lin.delta_R], [dp, dR], rtol=1e-12)
 
 
-def test_whiten_is_model_whitening(cdra):
-    _, T, _, Ts, _ = _problem(cdra, 2)
-    Y = jax.random.normal(jax.random.PRNGKey(0), (15, 6))
-    expected = jnp.einsum("kij,kj->ki", whitening(T, NOISE), Y)
-    np.testing.assert_allclose(kernels.whiten(Y.T, Ts, NOISE).T, expected, rtol=1e-13, atol=1e-13)
+@eqx.filter_jit
+def _whitenings(Y, T, Ts, noise):
+    """:func:`kernels.whiten` of ``Y (15, 6)`` (pose-last) and the model's whitening of it."""
+    expected = jnp.einsum("kij,kj->ki", whitening(T, noise), Y)
+    return kernels.whiten(Y.T, Ts, noise).T, expected
 
 
+def test_whiten_is_model_whitening(trials):
+    _, T, _, Ts, _ = _problem(trials, 2)
+    Y = np.random.default_rng(0).normal(size=(15, 6))
+    got, expected = _whitenings(Y, T, Ts, NOISE)
+    np.testing.assert_allclose(got, expected, rtol=1e-13, atol=1e-13)
+
+
+@functools.cache
 def _rotations():
     rng = np.random.default_rng(0)
     w = rng.normal(size=(200, 3))
@@ -109,15 +143,15 @@ def _rotations():
 
 def test_so3_log_is_lie_so3_log():
     R = _rotations()
-    got = kernels.so3_log(jnp.moveaxis(R, 0, -1)).T
+    got = jax.jit(kernels.so3_log)(jnp.moveaxis(R, 0, -1)).T
     np.testing.assert_allclose(got, lie.so3_log(R), rtol=0, atol=1e-14)
 
 
 def test_se3_log_is_lie_se3_log():
     R = _rotations()
-    p = jax.random.normal(jax.random.PRNGKey(1), (R.shape[0], 3)) * 300.0
+    p = np.random.default_rng(1).normal(size=(R.shape[0], 3)) * 300.0
     T = lie.make_pose(R, p)
-    got = kernels.se3_log(jnp.moveaxis(T[:, :3], 0, -1)).T
+    got = jax.jit(kernels.se3_log)(jnp.moveaxis(T[:, :3], 0, -1)).T
     np.testing.assert_allclose(got, lie.se3_log(T), rtol=1e-12, atol=1e-11)
 
 
@@ -141,30 +175,40 @@ def test_se3_left_jacobian_is_the_derivative_of_exp():
     np.testing.assert_allclose(J_inv @ ref, np.broadcast_to(np.eye(6), ref.shape), atol=1e-12)
 
 
-@pytest.mark.parametrize("noise", [None, NOISE], ids=["paper", "weighted"])
-def test_lm_jacobian_is_the_derivative_of_the_residual(cdra, noise):
-    q, T, P, Ts, X = _problem(cdra, 3, noise=NOISE)
-    X = 0.7 * X + 0.01  # away from the solution and from zero
+@eqx.filter_jit
+def _reference_residual(arm, q, T, X, noise):
+    """The residual of :func:`residual_jacobian` from the reference model (component-major),
+    and its ``jax.jacfwd`` at ``X``."""
 
     def residual(X):
-        Y = residual_twist(T, tool_pose(apply_frame_errors(cdra, X), q))
+        Y = residual_twist(T, tool_pose(apply_frame_errors(arm, X), q))
         if noise is not None:
             Y = jnp.einsum("kij,kj->ki", whitening(T, noise), Y)
         return Y.T.reshape(-1)  # component-major, as residual_jacobian
 
-    r, (dp, dR), J = eqx.filter_jit(residual_jacobian)(X, cdra.frames, P, Ts, noise)
-    ref = jax.jit(jax.jacfwd(residual))(X)
-    np.testing.assert_allclose(r, jax.jit(residual)(X), rtol=0, atol=1e-11)
-    np.testing.assert_allclose(J, ref, rtol=0, atol=1e-13 * float(jnp.max(jnp.abs(ref))))
+    return residual(X), jax.jacfwd(residual)(X)
+
+
+@pytest.mark.parametrize("noise", [None, NOISE], ids=["paper", "weighted"])
+def test_lm_jacobian_is_the_derivative_of_the_residual(cdra, trials, noise):
+    q, T, P, Ts, X = _problem(trials, 3)
+    X = 0.7 * X + 0.01  # away from the solution and from zero
+    r, (dp, dR), J = _residual_jacobian(X, cdra.frames, P, Ts, noise)
+    r_ref, ref = (np.asarray(x) for x in _reference_residual(cdra, q, T, X, noise))
+    np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(J, ref, rtol=0, atol=1e-13 * float(np.max(np.abs(ref))))
     # LM's normal equations without J, for a step on the left of the frames exp(X) F (its
     # Jacobian: the one above at X = 0 about those frames): J^T J, J^T r.
     frames = lie.se3_exp(X.reshape(-1, 6)) @ cdra.frames
-    r0, _, J0 = eqx.filter_jit(residual_jacobian)(jnp.zeros_like(X), frames, P, Ts, noise)
+    r0, _, J0 = (np.asarray(x) for x in _residual_jacobian(np.zeros_like(X), frames, P, Ts, noise))
     np.testing.assert_allclose(r0, r, rtol=0, atol=1e-11)
     N, g, rw = _lm_normal_equations(frames, P, Ts, noise)
     np.testing.assert_allclose(rw.reshape(-1), r0, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(N, J0.T @ J0, rtol=0, atol=1e-12 * float(jnp.abs(N).max()))
-    np.testing.assert_allclose(g, J0.T @ r0, rtol=0, atol=1e-12 * float(jnp.abs(g).max()))
+    np.testing.assert_allclose(N, J0.T @ J0, rtol=0, atol=1e-12 * float(np.abs(N).max()))
+    np.testing.assert_allclose(g, J0.T @ r0, rtol=0, atol=1e-12 * float(np.abs(g).max()))
+
+
+_residual_jacobian = eqx.filter_jit(residual_jacobian)
 
 
 @eqx.filter_jit
@@ -186,24 +230,28 @@ def _rank_deficient(seed, rows=90, n=24, null=2):
 def test_pivoted_cholesky_factorises_and_reveals_the_rank():
     D, _ = _rank_deficient(0, null=3)
     N = D.T @ D
-    L, rank = pivoted_cholesky(N, normal_cutoff(np.float64))
+    L, rank = jax.jit(pivoted_cholesky)(N, normal_cutoff(np.float64))
     assert int(rank) == 21
     np.testing.assert_allclose(L @ L.T, N, rtol=0, atol=1e-14 * np.abs(N).max())
     assert np.all(np.asarray(L)[:, 21:] == 0)  # the dropped steps are the trailing columns
-    assert int(pivoted_cholesky(np.zeros((5, 5)), 1e-11)[1]) == 0
+    assert int(jax.jit(pivoted_cholesky)(np.zeros((5, 5)), 1e-11)[1]) == 0
+
+
+_min_norm_solve_normal = jax.jit(min_norm_solve_normal)
+_min_norm_lstsq = jax.jit(min_norm_lstsq)
 
 
 def test_min_norm_solve_normal_is_the_pseudo_inverse():
     for seed in range(4):
         D, Y = _rank_deficient(seed)
-        x, rank, smallest = min_norm_solve_normal(D.T @ D, D.T @ Y)
+        x, rank, smallest = _min_norm_solve_normal(D.T @ D, D.T @ Y)
         expected = np.linalg.pinv(D, rcond=1e-10) @ Y
         assert int(rank) == 22
         assert 1e-9 < float(smallest) < 1.0
         np.testing.assert_allclose(x, expected, rtol=0, atol=1e-11 * np.abs(expected).max())
         _, null_space = np.linalg.eigh(D.T @ D)
         assert np.abs(null_space[:, :2].T @ np.asarray(x)).max() < 1e-11 * np.abs(expected).max()
-        x_svd, rank_svd, _ = min_norm_lstsq(D, Y)
+        x_svd, rank_svd, _ = _min_norm_lstsq(D, Y)
         assert int(rank_svd) == 22
         np.testing.assert_allclose(x, x_svd, rtol=0, atol=1e-11 * np.abs(expected).max())
 
@@ -235,18 +283,12 @@ def _smallest_pivot(arm, q, T):
     return jax.vmap(one)(q, T)
 
 
-@eqx.filter_jit
-def _trials7(arm):
-    keys = jax.random.split(jax.random.PRNGKey(11), 48)
-    q, T, _, _, _ = jax.vmap(lambda k: simulation.simulate_trial(k, arm, 7))(keys)
-    return q, T
-
-
 @pytest.fixture(scope="module")
-def trials7(cdra):
-    """48 sets of 7 poses (42 rows, the fewest for which the fast step is tried), shared by the
-    fast-path tests, with the smallest pivots of their normal equations at the nominal model."""
-    q, T = _trials7(cdra)
+def trials7(cdra, trials):
+    """The noise-free first 7 poses of ``trials`` (42 rows, the fewest for which the fast step
+    is tried: 48 sets), shared by the fast-path tests, with the smallest pivots of their normal
+    equations at the nominal model."""
+    q, T = trials[0][:, :7], trials[5][:, :7]
     return q, T, np.asarray(_smallest_pivot(cdra, q, T))
 
 
@@ -326,13 +368,13 @@ def _final(history):
     return h[np.arange(h.shape[0]), last]
 
 
-def test_lm_first_step_is_the_gauss_newton_step(cdra):
+def test_lm_first_step_is_the_gauss_newton_step(cdra, trials):
     """LM starts at damping 1e-6 (INITIAL_DAMPING): its first move is a full Gauss-Newton step
     (with a damping of 1 it would be about half of one), and the noise-free solve needs about
     as many steps as the paper's. The step is LM's exact-Jacobian one, which differs from the
     paper's first-order step by the derivative of the logarithm at the nominal residual
     (1 mm / 0.05 rad errors: ~1 %)."""
-    q, T, _, _, _ = _problem(cdra, 5)
+    q, T, _, _, _ = _problem(trials, 5, noisy=False)
     lm = eqx.filter_jit(calibrate_lm)(cdra, q, T)
     paper = eqx.filter_jit(calibrate_paper)(cdra, q, T)
     np.testing.assert_allclose(lm.step_norm[0], paper.step_norm[0], rtol=0.05)

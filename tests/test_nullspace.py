@@ -4,6 +4,8 @@ and the solver paths built on it: the null-space step, the SVD redo where the da
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -36,6 +38,39 @@ from cdra_jax.calibration.nullspace import (
 KINDS = ("spherical", "revolute", "prismatic")
 
 
+def _pose(xyz, rotvec):
+    """Poses ``(..., 4, 4)`` from translations and rotation vectors (Rodrigues, numpy)."""
+    xyz, rotvec = np.broadcast_arrays(np.asarray(xyz, float), np.asarray(rotvec, float))
+    theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
+    K = np.zeros(rotvec.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -rotvec[..., 2], rotvec[..., 1], -rotvec[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    safe = np.where(theta > 0, theta, 1.0)
+    s, c = np.sin(safe) / safe, (1 - np.cos(safe)) / safe**2
+    T = np.broadcast_to(np.eye(4), rotvec.shape[:-1] + (4, 4)).copy()
+    T[..., :3, :3] = np.eye(3) + np.where(theta > 0, s * K + c * K @ K, 0.0)
+    T[..., :3, 3] = xyz
+    return T
+
+
+def _tool_poses(arm: arm_lib.Arm, frames: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Tool poses ``(m, 4, 4)`` of ``arm`` with ``frames`` at states ``q (m, dof)`` (numpy:
+    test data)."""
+    T, j = frames[0], 0
+    for i, mod in enumerate(arm.modules):
+        qi = q[:, j : j + mod.dof]
+        j += mod.dof
+        axis = np.asarray(mod.axis)
+        if mod.kind == "spherical":
+            M = _pose(np.zeros(3), qi)
+        elif mod.kind == "revolute":
+            M = _pose(np.zeros(3), qi * axis)
+        else:
+            M = _pose(qi * axis, np.zeros(3))
+        T = T @ M @ frames[i + 1]
+    return T
+
+
 def random_arm(seed: int, kinds: tuple[str, ...] | None = None) -> arm_lib.Arm:
     """An arm of 1-5 random modules (or ``kinds``) with random frames (|p| ~ 200 mm)."""
     rng = np.random.default_rng(seed)
@@ -50,31 +85,40 @@ def random_arm(seed: int, kinds: tuple[str, ...] | None = None) -> arm_lib.Arm:
         else:
             mods.append(arm_lib.prismatic(f"m{i}", rng.normal(size=3)))
     k1 = len(kinds) + 1
-    frames = lie.from_xyz_rotvec(
-        jnp.asarray(rng.normal(size=(k1, 3)) * 200.0), jnp.asarray(rng.normal(size=(k1, 3)))
-    )
+    frames = _pose(rng.normal(size=(k1, 3)) * 200.0, rng.normal(size=(k1, 3)))
     return arm_lib.Arm(
-        frames=frames, modules=tuple(mods), frame_names=tuple(f"f{j}" for j in range(k1))
+        frames=jnp.asarray(frames),
+        modules=tuple(mods),
+        frame_names=tuple(f"f{j}" for j in range(k1)),
     )
 
 
-def _data(arm, seed, m, noise=None):
-    q = arm_lib.sample_states(jax.random.PRNGKey(seed), arm, m)
-    T = tool_pose(arm, q)
-    return q, T
+_NOISE = NoiseModel(0.05, 1e-3)
+_SHIFT = _pose(np.full(3, 0.1), np.full(3, 0.1))
+"""Each frame is moved by this pose to take the arm off its own frames."""
+
+
+@functools.cache
+def _random_arm_data(seed: int) -> tuple[arm_lib.Arm, np.ndarray]:
+    """``random_arm(seed)`` and 30 generic states (uniform within the limits)."""
+    arm = random_arm(seed)
+    lim = arm.state_limits
+    u = np.random.default_rng(seed).uniform(size=(30, arm.dof))
+    return arm, lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
 
 
 @pytest.mark.parametrize("seed", range(12))
 def test_null_basis_is_the_svd_null_space_on_random_arms(seed):
     """``D Z = 0`` at random frames and poses, ``Z`` orthonormal, and its dimension is the
-    numerical nullity of ``D`` (generic poses, 30 of them), also away from the arm's frames."""
-    arm = random_arm(seed)
-    # frames moved off the arm's own: the basis follows the current frames
-    moved = arm.with_frames(lie.se3_exp(jnp.full((len(arm.frame_names), 6), 0.1)) @ arm.frames)
-    for a in (arm, moved):
-        q, T = _data(a, seed, 30)
-        _, D = stacked_system(a, q, T, NoiseModel(0.05, 1e-3) if seed % 2 else None)
-        D = np.asarray(D)
+    numerical nullity of ``D`` (generic poses, 30 of them), also away from the arm's frames;
+    odd seeds whitened."""
+    # Eagerly: the package's small operations are compiled once per shape and shared by the
+    # arms (compiled whole, one program per arm, the null spaces of many modules cost more).
+    arm, q = _random_arm_data(seed)
+    frames = np.asarray(arm.frames)
+    for a in (arm, arm.with_frames(_SHIFT @ frames)):
+        T = _tool_poses(a, np.asarray(a.frames), q)
+        D = np.asarray(stacked_system(a, q, T, _NOISE if seed % 2 else None)[1])
         Z = np.asarray(structural_null_space(a))
         k = structural_nullity(a)
         assert Z.shape == (a.n_params, k)
@@ -106,72 +150,109 @@ def test_generators_per_module_kind():
     assert structural_null_space(random_arm(1, ("spherical",) * 3)).shape == (24, 0)
 
 
-def test_default_arm_null_space_is_the_elbow_axis(cdra):
+@pytest.fixture(scope="module")
+def cdra_repeated_poses_step(cdra):
+    """The paper's arm at its own frames, 9 poses, 3 distinct (each three times): its
+    structural null space ``Z`` and :func:`null_space_solve`'s ``(x, smallest, structural)``."""
+    lim = cdra.state_limits
+    q = lim[:, 0] + np.random.default_rng(0).uniform(size=(3, cdra.dof)) * (lim[:, 1] - lim[:, 0])
+    q = np.tile(q, (3, 1))
+    Y, D = stacked_system(cdra, q, _tool_poses(cdra, np.asarray(cdra.frames), q))
+    Z = structural_null_space(cdra)
+    return (np.asarray(Z),) + tuple(np.asarray(v) for v in null_space_solve(D.T @ D, D.T @ Y, Z))
+
+
+def test_default_arm_null_space_is_the_elbow_axis(cdra, cdra_repeated_poses_step):
     """The paper's arm: rank 22 of 24, the two elbow-axis directions."""
     assert structural_nullity(cdra) == 2
-    Z = np.asarray(structural_null_space(cdra))
+    Z = cdra_repeated_poses_step[0]
+    assert Z.shape == (24, 2)
     # only upper_arm (block 1) and forearm (block 2) are involved
     assert np.abs(Z[:6]).max() == 0 and np.abs(Z[18:]).max() == 0
 
 
 @pytest.mark.parametrize("seed", range(6))
 def test_null_space_solve_is_the_pseudo_inverse_step(seed):
-    arm = random_arm(100 + seed)
-    q, T = _data(arm, seed, 25)
-    frames = (
-        lie.se3_exp(
-            jnp.asarray(np.random.default_rng(seed).normal(size=(len(arm.frame_names), 6)) * 0.01)
-        )
-        @ arm.frames
+    """On random arms (those of the null-basis test) at frames off their own, the data
+    measured at their own and whitened: the null-space step is the SVD's minimum-norm step,
+    orthogonal to the structural null space, and its tests pass."""
+    arm, q = _random_arm_data(seed)
+    T = _tool_poses(arm, np.asarray(arm.frames), q)
+    rng = np.random.default_rng(100 + seed)
+    k1 = len(arm.frame_names)
+    frames = _pose(rng.normal(size=(k1, 3)) * 0.01, rng.normal(size=(k1, 3)) * 0.01) @ np.asarray(
+        arm.frames
     )
-    Y, D = stacked_system(arm.with_frames(frames), q, T, NoiseModel(0.05, 1e-3))
-    x_ref, _, _ = min_norm_lstsq(D, Y)
+    Y, D = stacked_system(arm.with_frames(frames), q, T, _NOISE)
+    x_ref = np.asarray(min_norm_lstsq(D, Y)[0])
     Z = structural_null_space(arm, frames)
     x, smallest, structural = null_space_solve(D.T @ D, D.T @ Y, Z)
+    x, Z = np.asarray(x), np.asarray(Z)
     assert float(smallest) >= RESOLVED_PIVOT and float(structural) <= STRUCTURAL_TOL
-    np.testing.assert_allclose(
-        np.asarray(x), np.asarray(x_ref), rtol=0, atol=1e-9 * float(np.abs(x_ref).max())
-    )
+    np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-9 * float(np.abs(x_ref).max()))
     if Z.shape[1]:
-        assert np.abs(np.asarray(Z).T @ np.asarray(x)).max() < 1e-12 * np.abs(np.asarray(x)).max()
+        assert np.abs(Z.T @ x).max() < 1e-12 * np.abs(x).max()
 
 
-def test_null_space_solve_flags_data_rank_deficiency(cdra):
+def test_null_space_solve_flags_data_rank_deficiency(cdra_repeated_poses_step):
     """Poses repeated: the data lose more than the structural directions; the bound says so."""
-    q, T = _data(cdra, 0, 3)
-    q, T = jnp.tile(q, (3, 1)), jnp.tile(T, (3, 1, 1))  # 9 poses, 3 distinct
-    Y, D = stacked_system(cdra, q, T)
-    _, smallest, _ = null_space_solve(D.T @ D, D.T @ Y, structural_null_space(cdra))
+    smallest = cdra_repeated_poses_step[2]
     assert not float(smallest) >= RESOLVED_PIVOT  # tiny, or NaN
 
 
 @eqx.filter_jit
-def _solves(arm, q, T, noise, kw_a, kw_b, solve=None):
-    def one(qq, tt, kw):
-        return (solve or calibrate_paper)(arm, qq, tt, noise, throw=False, **kw)
+def _solve(arm, q, T, noise, kw, solve):
+    """``solve`` (a solver function) on each trial of ``q (N, m, dof)``, ``T (N, m, 4, 4)``,
+    with the options ``kw`` (:func:`_frozen`): one compiled program per solver, options, arm
+    and shape, shared by the tests."""
+    return jax.vmap(lambda qq, tt: solve(arm, qq, tt, noise, throw=False, **dict(kw)))(q, T)
 
-    a = jax.vmap(lambda qq, tt: one(qq, tt, dict(kw_a)))(q, T)
-    b = jax.vmap(lambda qq, tt: one(qq, tt, dict(kw_b)))(q, T)
-    return a, b
+
+def _solves(arm, q, T, noise, kw_a, kw_b, solve=calibrate_paper):
+    return _solve(arm, q, T, noise, kw_a, solve), _solve(arm, q, T, noise, kw_b, solve)
 
 
 def _frozen(**kw):
     return tuple(sorted(kw.items()))
 
 
+@eqx.filter_jit
+def _simulate(arm, keys, noise):
+    """:func:`simulation.simulate_trial` with ``noise``, 15 calibration and 5 verification poses
+    for each key, and the calibration poses without the noise."""
+
+    def one(k):
+        q, T, q_ver, _, X = simulation.simulate_trial(k, arm, 15, noise=noise, m_verify=5)
+        return q, T, q_ver, tool_pose(arm_lib.apply_frame_errors(arm, X), q)
+
+    return jax.vmap(one)(keys)
+
+
+@pytest.fixture(scope="module")
+def paper15(cdra):
+    """32 trials of the paper's problem (15 poses, 5 verification poses): ``clean`` (noise-free),
+    ``noisy`` (the same with ``NoiseModel(0.08, 1e-3)``) and ``degenerate`` (the clean trials,
+    the odd ones with their first 3 poses each repeated five times instead of 15 poses)."""
+    noise = NoiseModel(0.08, 1e-3)
+    keys = jax.random.split(jax.random.PRNGKey(3), 32)
+    q, T, q_ver, T_clean = (np.asarray(x) for x in _simulate(cdra, keys, noise))
+    q_deg, T_deg = q.copy(), T_clean.copy()
+    q_deg[1::2] = np.tile(q[1::2, :3], (1, 5, 1))
+    T_deg[1::2] = np.tile(T_clean[1::2, :3], (1, 5, 1, 1))
+    return {
+        "clean": (q, T_clean, q_ver, None),
+        "noisy": (q, T, q_ver, noise),
+        "degenerate": (q_deg, T_deg, q_ver, None),
+    }
+
+
 @pytest.mark.slow
-def test_degenerate_pose_sets_are_redone_with_svd_steps(cdra):
-    """Pose sets of 8-9 poses whose data lose directions beyond the structural ones (repeated
-    poses) fail the null-space step's test and are solved again with SVD steps, mixed in one
-    batch with generic ones: everything as the SVD solver (an explicit ``rcond``)."""
-    qs, Ts = [], []
-    for seed in range(6):
-        q, T, _, _, _ = simulation.simulate_trial(jax.random.PRNGKey(seed), cdra, 9)
-        if seed % 2:  # 3 distinct poses, each three times
-            q, T = jnp.tile(q[:3], (3, 1)), jnp.tile(T[:3], (3, 1, 1))
-        qs.append(q)
-        Ts.append(T)
-    q, T = jnp.stack(qs), jnp.stack(Ts)
+def test_degenerate_pose_sets_are_redone_with_svd_steps(cdra, paper15):
+    """Pose sets of 15 poses whose data lose directions beyond the structural ones (3 distinct
+    poses, each five times) fail the null-space step's test and are solved again with SVD
+    steps, mixed in one batch with generic ones: everything as the SVD solver (an explicit
+    ``rcond``)."""
+    q, T, _, _ = paper15["degenerate"]
     fast, exact = _solves(cdra, q, T, None, _frozen(), _frozen(rcond=default_rcond(jnp.float64)))
     np.testing.assert_array_equal(fast.rank, exact.rank)
     assert set(np.asarray(fast.rank)[1::2]) != {22} and set(np.asarray(fast.rank)[::2]) == {22}
@@ -182,17 +263,24 @@ def test_degenerate_pose_sets_are_redone_with_svd_steps(cdra):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8, err_msg=field)
 
 
+@eqx.filter_jit
+def _random_arm_trials(arm, X, seeds):
+    """20 states per seed (``PRNGKey(seed)``) and the tool poses of the arm with its frames
+    moved by ``X (N, K+1, 6)``, one trial each."""
+    q = jax.vmap(lambda s: arm_lib.sample_states(jax.random.PRNGKey(s), arm, 20))(seeds)
+    truth = jax.vmap(lambda x: lie.se3_exp(x) @ arm.frames)(X)
+    return q, jax.vmap(lambda fr, qq: tool_pose(arm.with_frames(fr), qq))(truth, q)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("kinds", [("prismatic", "revolute", "spherical"), ("revolute",) * 4])
 def test_random_arm_calibration_is_the_svd_solution(kinds):
     """Calibrations of arms with prismatic and several revolute modules (4-6 structural null
     directions): the null-space steps give the SVD solver's frames."""
     arm = random_arm(7, kinds)
-    X = jnp.asarray(np.random.default_rng(7).uniform(-1, 1, (3, len(arm.frame_names), 6)))
-    X = X * jnp.asarray([1.0, 1.0, 1.0, 0.02, 0.02, 0.02])
-    q = jnp.stack([arm_lib.sample_states(jax.random.PRNGKey(t), arm, 20) for t in range(3)])
-    truth = jax.vmap(lambda x: lie.se3_exp(x) @ arm.frames)(X)
-    T = jax.vmap(lambda fr, qq: tool_pose(arm.with_frames(fr), qq))(truth, q)
+    X = np.random.default_rng(7).uniform(-1, 1, (3, len(arm.frame_names), 6))
+    X = X * np.array([1.0, 1.0, 1.0, 0.02, 0.02, 0.02])
+    q, T = _random_arm_trials(arm, jnp.asarray(X), jnp.arange(3))
     fast, exact = _solves(arm, q, T, None, _frozen(), _frozen(rcond=default_rcond(jnp.float64)))
     assert np.all(np.asarray(fast.converged))
     np.testing.assert_array_equal(fast.rank, arm.n_params - structural_nullity(arm))
@@ -200,17 +288,10 @@ def test_random_arm_calibration_is_the_svd_solution(kinds):
     np.testing.assert_allclose(np.asarray(fast.frames), np.asarray(exact.frames), atol=1e-8)
 
 
-@pytest.fixture(scope="module")
-def paper15(cdra):
-    keys = jax.random.split(jax.random.PRNGKey(3), 32)
-    out = {}
-    for name, noise in (("clean", None), ("noisy", NoiseModel(0.08, 1e-3))):
-        sim = jax.vmap(
-            lambda k, noise=noise: simulation.simulate_trial(k, cdra, 15, noise=noise, m_verify=5)
-        )
-        q, T, q_ver, _, _ = jax.jit(sim)(keys)
-        out[name] = (q, T, q_ver, noise)
-    return out
+@eqx.filter_jit
+def _predict(arm, frames, q_ver):
+    """Tool poses ``(N, m, 4, 4)`` of the arm with each trial's frames at its states."""
+    return jax.vmap(lambda fr, qq: tool_pose(arm.with_frames(fr), qq))(frames, q_ver)
 
 
 @pytest.mark.slow
@@ -231,12 +312,11 @@ def test_lm_predictive_stop_keeps_the_answers(cdra, paper15, case, weighted):
     assert np.all(np.asarray(new.converged))
     assert np.all(np.asarray(new.iterations) <= np.asarray(ref.iterations))
     np.testing.assert_allclose(np.asarray(new.frames), np.asarray(ref.frames), rtol=0, atol=1e-8)
-
-    def predict(frames):
-        return jax.vmap(lambda fr, qq: tool_pose(cdra.with_frames(fr), qq))(frames, q_ver)
-
     np.testing.assert_allclose(
-        np.asarray(predict(new.frames)), np.asarray(predict(ref.frames)), rtol=0, atol=1e-8
+        np.asarray(_predict(cdra, new.frames, q_ver)),
+        np.asarray(_predict(cdra, ref.frames, q_ver)),
+        rtol=0,
+        atol=1e-8,
     )
 
 
@@ -259,10 +339,9 @@ def test_predictive_stop_keeps_the_answers(cdra, paper15, case, weighted):
     it_ref, it_new = np.asarray(ref.iterations), np.asarray(new.iterations)
     assert np.all(it_new <= it_ref) and it_new.mean() < it_ref.mean()
     np.testing.assert_allclose(np.asarray(new.frames), np.asarray(ref.frames), rtol=0, atol=1e-8)
-
-    def predict(frames):
-        return jax.vmap(lambda fr, qq: tool_pose(cdra.with_frames(fr), qq))(frames, q_ver)
-
     np.testing.assert_allclose(
-        np.asarray(predict(new.frames)), np.asarray(predict(ref.frames)), rtol=0, atol=1e-8
+        np.asarray(_predict(cdra, new.frames, q_ver)),
+        np.asarray(_predict(cdra, ref.frames, q_ver)),
+        rtol=0,
+        atol=1e-8,
     )
