@@ -50,18 +50,21 @@ def _batch(name, arm, q, T):
 
 @eqx.filter_jit
 def _trials(arm):
-    keys = jax.random.split(jax.random.PRNGKey(11), 5)
-    noise_free = jax.vmap(lambda k: simulation.simulate_trial(k, arm, M))(keys[:2])
-    noisy = jax.vmap(lambda k: simulation.simulate_trial(k, arm, M, noise=NOISE))(keys[2:])
-    q = jnp.concatenate([noise_free[0], noisy[0]])
-    T = jnp.concatenate([noise_free[1], noisy[1]])
+    """Five noise-free trials (one simulation program), then noise on the NOISY ones."""
+    keys = jax.random.split(jax.random.PRNGKey(11), 6)
+    q, T, *_ = jax.vmap(lambda k: simulation.simulate_trial(k, arm, M))(keys[:5])
+    T = T.at[NOISY[0] :].set(simulation.add_measurement_noise(keys[5], T[NOISY[0] :], NOISE))
     return q, T.at[BROKEN, 3, 0, 3].set(jnp.nan)
 
 
 @pytest.fixture(scope="module")
-def trials32(cdra):
-    q, T = _trials(cdra)
-    return q.astype(jnp.float32), T.astype(jnp.float32)
+def trials64(cdra):
+    return tuple(np.asarray(a) for a in jax.device_get(_trials(cdra)))
+
+
+@pytest.fixture(scope="module")
+def trials32(trials64):
+    return tuple(a.astype(np.float32) for a in trials64)
 
 
 # --------------------------------------------------------------------------- float32
@@ -92,11 +95,10 @@ def test_float32_solves_stay_float32_and_converge_with_the_default_tolerances(cd
 
 
 @pytest.mark.parametrize("name", ["paper", "lm"])
-def test_float32_solves_agree_with_float64(cdra, trials32, name):
+def test_float32_solves_agree_with_float64(cdra, trials64, trials32, name):
     """The float32 solve is the float64 one up to float32 rounding: noisy trials fit to the
     same Eq. 20 deviation (the noise, 0.08 mm, dominates)."""
-    q, T = _trials(cdra)
-    s64 = jax.device_get(_batch(name, cdra, q, T))
+    s64 = jax.device_get(_batch(name, cdra, *trials64))
     s32 = jax.device_get(_batch(name, cdra, *trials32))
     dp32, dp64 = np.asarray(s32.final_delta_p), np.asarray(s64.final_delta_p)
     np.testing.assert_allclose(dp32[NOISY], dp64[NOISY], rtol=0.02)
@@ -122,9 +124,9 @@ def test_default_tolerances_depend_on_the_dtype():
     assert (levenberg_marquardt.RTOL_FLOAT32, levenberg_marquardt.ATOL_FLOAT32) == (1e-6, 1e-3)
 
 
-def test_float64_default_tolerance_is_the_old_one_bitwise(cdra):
+def test_float64_default_tolerance_is_the_old_one_bitwise(cdra, trials64):
     """tol=None in float64 is tol=1e-10: the same program and bitwise the same answer."""
-    q, T = (np.asarray(a)[2] for a in _trials(cdra))
+    q, T = (a[NOISY[0]] for a in trials64)
     a = jax.device_get(calibrate_paper(cdra, q, T, NOISE))
     b = jax.device_get(calibrate_paper(cdra, q, T, NOISE, tol=1e-10))
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
@@ -135,29 +137,28 @@ def test_float64_default_tolerance_is_the_old_one_bitwise(cdra):
 
 
 BAD_SHAPES = [
-    (NoiseModel(jnp.full(5, 0.08), 1e-3), "position_mm", r"\(5,\)"),
-    (NoiseModel(jnp.full((8, 1), 0.08), 1e-3), "position_mm", r"\(8, 1\)"),
+    (NoiseModel(np.full(5, 0.08), 1e-3), "position_mm", r"\(5,\)"),
+    (NoiseModel(np.full((M, 1), 0.08), 1e-3), "position_mm", rf"\({M}, 1\)"),
     (NoiseModel(0.08, np.full(7, 1e-3)), "rotation_rad", r"\(7,\)"),
 ]
 
 
 @pytest.fixture(scope="module")
-def problem8(cdra):
-    q, T, *_ = simulation.simulate_trial(
-        jax.random.PRNGKey(0), cdra, 8, noise=NOISE, sampler=simulation.sample_states
-    )
+def problem(trials64):
+    """One noisy 15-pose trial in float64, as jax arrays."""
+    q, T = (jnp.asarray(a[NOISY[0]]) for a in trials64)
     return q, T
 
 
 @pytest.mark.parametrize(("noise", "field", "shape"), BAD_SHAPES)
 @pytest.mark.parametrize("solve", [calibrate_paper, calibrate_lm], ids=["paper", "lm"])
 def test_per_pose_noise_of_the_wrong_shape_raises_naming_the_field(
-    cdra, problem8, solve, noise, field, shape
+    cdra, problem, solve, noise, field, shape
 ):
     """Before: JAX's unnamed "Incompatible shapes for broadcasting" or a TypeError."""
-    q, T = problem8
+    q, T = problem
     expected = rf"noise\.{field} must be a number \(shape \(\)\) or one std per pose "
-    expected += rf"\(shape \(m,\) = \(8,\)\), got shape {shape}"
+    expected += rf"\(shape \(m,\) = \({M},\)\), got shape {shape}"
     with pytest.raises(ValueError, match=expected):
         solve(cdra, q, T, noise)
     with pytest.raises(ValueError, match=expected):  # at trace time, under jit and vmap
@@ -166,26 +167,26 @@ def test_per_pose_noise_of_the_wrong_shape_raises_naming_the_field(
 
 @pytest.mark.parametrize(("noise", "field", "shape"), BAD_SHAPES)
 def test_robust_and_simulation_name_a_noise_field_of_the_wrong_shape(
-    cdra, problem8, noise, field, shape
+    cdra, problem, noise, field, shape
 ):
-    q, T = problem8
+    q, T = problem
     with pytest.raises(ValueError, match=rf"noise\.{field} must be a number \(shape \(\)\)"):
         calibrate_robust(cdra, q, T, noise)
     key = jax.random.PRNGKey(1)
-    with pytest.raises(ValueError, match=rf"noise\.{field} .*\(8,\).*got shape {shape}"):
+    with pytest.raises(ValueError, match=rf"noise\.{field} .*\({M},\).*got shape {shape}"):
         simulation.add_measurement_noise(key, T, noise)
     with pytest.raises(ValueError, match=rf"noise\.{field}"):
         simulation.measure(key, cdra, q, noise)
 
 
-def test_noise_of_the_right_shapes_is_accepted(problem8):
-    _, T = problem8
+def test_noise_of_the_right_shapes_is_accepted(problem):
+    _, T = problem
     key = jax.random.PRNGKey(1)
-    for noise in (NoiseModel(0.08, 1e-3), NoiseModel(jnp.full(8, 0.08), np.full(8, 1e-3))):
+    for noise in (NoiseModel(0.08, 1e-3), NoiseModel(np.full(M, 0.08), np.full(M, 1e-3))):
         assert simulation.add_measurement_noise(key, T, noise).shape == T.shape
     # batched poses (trials, m): stds per pose or per trial broadcast against the leading axes
-    Tb = jnp.stack([T, T])
-    for std in (jnp.full(8, 0.08), jnp.full((2, 1), 0.08), jnp.full((2, 8), 0.08)):
+    Tb = jnp.asarray(np.stack([T, T]))
+    for std in (np.full(M, 0.08), np.full((2, 1), 0.08), np.full((2, M), 0.08)):
         out = simulation.add_measurement_noise(key, Tb, NoiseModel(std, 1e-3))
         assert out.shape == Tb.shape
 
@@ -237,10 +238,11 @@ def test_infinite_per_pose_std_is_weight_zero_and_traced_values_are_not_checked(
     assert out.shape == (2,)
 
 
-def test_robust_rejection_of_a_failed_trial_outside_jit_reports_nonfinite(cdra, problem8):
+def test_robust_rejection_of_a_failed_trial_outside_jit_reports_nonfinite(cdra, problem):
     """The rejection refit of a trial that failed (NaN measurements: a NaN residual scale) is
     discarded; outside jit it must not trip NoiseModel's value check on its way there."""
-    q, T = problem8
-    T = T.at[2, 0, 3].set(jnp.nan)
+    q, T = problem
+    T = np.array(T)
+    T[2, 0, 3] = np.nan
     out = calibrate_robust(cdra, q, T, reject_outliers=True, throw=False)
     assert result_names(out.solution.result) == "nonfinite"

@@ -136,7 +136,8 @@ def test_every_pose_a_sweep_draws_has_tension_closure(cdra, table, monkeypatch):
     q = np.concatenate([x.reshape(-1, cdra.dof) for x in drawn])
     # 2 levels x 3 trials (padded to 2 chunks of 4) x (5 calibration + 10 held-out) states
     assert len(q) >= 6 * 15
-    assert np.asarray(arm_tension_closure(cdra, q, DEFAULT_MIN_MARGIN)).all()
+    closure = jax.jit(lambda q: arm_tension_closure(cdra, q, DEFAULT_MIN_MARGIN))  # one program
+    assert np.asarray(closure(q)).all()
 
 
 @pytest.mark.slow
@@ -418,24 +419,28 @@ def test_identifiable_projection_analytic_and_svd(cdra):
     from cdra_jax.calibration import calibration_jacobian
     from cdra_jax.calibration.nullspace import structural_null_space
 
-    qs = []
-    for seed in range(4):
-        q, _, _, _, _ = simulate_trial(jax.random.PRNGKey(seed), cdra, 8)
-        qs.append(np.tile(np.asarray(q[:2]), (4, 1)) if seed % 2 else np.asarray(q))
-    q = np.stack(qs)
-    e = np.random.default_rng(0).normal(size=(4, cdra.n_params)) * 0.01
-    Z = structural_null_space(cdra)
-
     def jac(qq):
         _, after = chain(cdra.frames, module_poses(cdra, qq))
         D = calibration_jacobian(after)
         return D.reshape(-1, D.shape[-1])
 
-    D = jax.vmap(jac)(q)
-    got = np.asarray(jax.jit(jax.vmap(sweeps._project_identifiable, (0, 0, None)))(D, e, Z))
+    @jax.jit  # one program each, not one per eager primitive
+    def states(keys):
+        return jax.vmap(lambda k: simulate_trial(k, cdra, 8)[0])(keys)
+
+    @jax.jit
+    def project(q, e):
+        D = jax.vmap(jac)(q)
+        Z = structural_null_space(cdra)
+        return D, jax.vmap(sweeps._project_identifiable, (0, 0, None))(D, e, Z)
+
+    drawn = np.asarray(states(jax.random.split(jax.random.PRNGKey(0), 4)))
+    q = np.stack([np.tile(x[:2], (4, 1)) if i % 2 else x for i, x in enumerate(drawn)])
+    e = np.random.default_rng(0).normal(size=(4, cdra.n_params)) * 0.01
+    D, got = (np.asarray(a) for a in project(q, e))
     for i in range(4):
-        _, s, Vt = np.linalg.svd(np.asarray(D[i]))
+        _, s, Vt = np.linalg.svd(D[i])
         V = Vt[: int(np.sum(s > 1e-10 * s[0]))].T
         np.testing.assert_allclose(got[i], V @ (V.T @ e[i]), atol=1e-12)
     # the degenerate sets really lose more than the structural directions
-    assert np.linalg.matrix_rank(np.asarray(D[1]), tol=1e-8) < 22
+    assert np.linalg.matrix_rank(D[1], tol=1e-8) < 22
