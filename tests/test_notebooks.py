@@ -206,8 +206,10 @@ def test_notebook_runs(name, kernel):
         assert f"{key} =" in known, f"{name}: parameter {key} is not set in the parameters cell"
     source = "\n".join(f"{k} = {v!r}" for k, v in overrides.items())
     nb.cells.insert(i + 1, nbformat.v4.new_code_cell(source, metadata={"tags": ["injected"]}))
-    # A clean namespace, as in a fresh kernel (the imported modules stay).
-    nb.cells.insert(0, nbformat.v4.new_code_cell("%reset -f", metadata={"tags": ["injected"]}))
+    # A clean namespace, as in a fresh kernel (the imported modules stay), and the cycle
+    # collector's thresholds of the test processes (tests/conftest.py) in the kernel too.
+    preamble = "%reset -f\nimport gc\ngc.set_threshold(20_000, 50, 100)"
+    nb.cells.insert(0, nbformat.v4.new_code_cell(preamble, metadata={"tags": ["injected"]}))
     client = NotebookClient(
         nb, km=kernel, timeout=CELL_TIMEOUT_S, interrupt_on_timeout=True, kernel_name="python3"
     )
