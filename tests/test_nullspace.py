@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from cdra_jax import arm as arm_lib
 from cdra_jax import lie, simulation
@@ -39,16 +40,13 @@ KINDS = ("spherical", "revolute", "prismatic")
 
 
 def _pose(xyz, rotvec):
-    """Poses ``(..., 4, 4)`` from translations and rotation vectors (Rodrigues, numpy)."""
-    xyz, rotvec = np.broadcast_arrays(np.asarray(xyz, float), np.asarray(rotvec, float))
-    theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
-    K = np.zeros(rotvec.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -rotvec[..., 2], rotvec[..., 1], -rotvec[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
-    safe = np.where(theta > 0, theta, 1.0)
-    s, c = np.sin(safe) / safe, (1 - np.cos(safe)) / safe**2
+    """Poses ``(..., 4, 4)`` from translations and rotation vectors (scipy's ``Rotation``: test
+    data without a compiled program per shape)."""
+    xyz, rotvec = (np.array(a) for a in np.broadcast_arrays(np.asarray(xyz, float), rotvec))
     T = np.broadcast_to(np.eye(4), rotvec.shape[:-1] + (4, 4)).copy()
-    T[..., :3, :3] = np.eye(3) + np.where(theta > 0, s * K + c * K @ K, 0.0)
+    T[..., :3, :3] = (
+        Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(T[..., :3, :3].shape)
+    )
     T[..., :3, 3] = xyz
     return T
 
