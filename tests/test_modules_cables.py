@@ -196,3 +196,10 @@ def test_cable_offsets_round_trip_through_model_files(cdra):
         loads_model(partial)
     with pytest.raises(ModelFileError, match=r"cables\[0\]\.offset: expected a number"):
         loads_model(text.replace("offset = 0.5\n", 'offset = "x"\n', 1))
+
+
+def test_forward_kinematics_of_no_rows_gives_no_rows(cdra):
+    """An empty batch of cable lengths gives an empty batch of states (no row to index)."""
+    module = cdra.modules[0]
+    sol = cable_forward_kinematics(module, np.zeros((0, module.n_cables)))
+    assert sol.state.shape == (0, 3) and sol.iterations.shape == (0,)

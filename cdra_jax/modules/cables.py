@@ -329,9 +329,7 @@ def _gauss_newton(
     # The carry batched from the start under vmap: JAX batches the body once less.
     init = (
         jnp.asarray(0),
-        *batched_like(
-            target.reshape(-1)[0], (x0, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32))
-        ),
+        *batched_like(jnp.sum(target), (x0, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32))),
     )
     _, x, done, iters = jax.lax.while_loop(cond, body, init)
     iters = jnp.where(done, iters, max_iterations)

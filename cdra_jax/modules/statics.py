@@ -264,7 +264,7 @@ def distribute_tensions(
 
     # The carry batched from the start under vmap: JAX batches the body once less.
     rest = (lam0, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32))
-    init = (jnp.asarray(0), *batched_like(lam0.reshape(-1)[0], rest))
+    init = (jnp.asarray(0), *batched_like(jnp.sum(lam0), rest))
     _, lam, _, iters = jax.lax.while_loop(cond, body, init)
     # Polish: one undamped Newton step on the final active set solves the piecewise-linear
     # optimality conditions to round-off when the active set is the optimal one.
