@@ -50,6 +50,8 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 from _memory import resident_bytes  # noqa: E402
 
+from cdra_jax.compilation import GC_THRESHOLDS  # noqa: E402
+
 jax.config.update("jax_enable_x64", True)
 
 # Tracing and lowering create millions of short-lived Python objects, and with CPython's
@@ -58,7 +60,7 @@ jax.config.update("jax_enable_x64", True)
 # caches). Rarer collections: tracing and lowering the vmapped paper and LM solvers and a
 # simulation took 1.68-1.77 s of CPU against 2.03-2.08 s (alternated). The collection that
 # frees the compiled programs is explicit (_drop_compiled_programs_above).
-gc.set_threshold(20_000, 50, 100)
+gc.set_threshold(*GC_THRESHOLDS)
 
 
 _RSS_AFTER_LAST_DROP = [0]

@@ -100,10 +100,6 @@ def _along(f, q, T, dq, xi):
     return lambda h: f(q + h * dq, lie.se3_exp(h * jnp.asarray(xi)) @ T)
 
 
-def _central_difference(g, h):
-    return (g(h) - g(-h)) / (2 * h)
-
-
 def _assert_close(actual, desired, rtol=1e-6):
     actual, desired = np.asarray(actual), np.asarray(desired)
     np.testing.assert_allclose(actual, desired, rtol=rtol, atol=rtol * np.abs(desired).max())

@@ -17,6 +17,8 @@ from _subprocess import ROOT, checkout_env
 from jupyter_client.manager import KernelManager
 from nbclient import NotebookClient
 
+from cdra_jax.compilation import GC_THRESHOLDS
+
 NOTEBOOK_DIR = ROOT / "notebooks"
 CELL_TIMEOUT_S = 300
 """Per-cell execution limit of the re-execution (nbclient ``timeout``)."""
@@ -208,7 +210,7 @@ def test_notebook_runs(name, kernel):
     nb.cells.insert(i + 1, nbformat.v4.new_code_cell(source, metadata={"tags": ["injected"]}))
     # A clean namespace, as in a fresh kernel (the imported modules stay), and the cycle
     # collector's thresholds of the test processes (tests/conftest.py) in the kernel too.
-    preamble = "%reset -f\nimport gc\ngc.set_threshold(20_000, 50, 100)"
+    preamble = f"%reset -f\nimport gc\ngc.set_threshold{GC_THRESHOLDS}"
     nb.cells.insert(0, nbformat.v4.new_code_cell(preamble, metadata={"tags": ["injected"]}))
     client = NotebookClient(
         nb, km=kernel, timeout=CELL_TIMEOUT_S, interrupt_on_timeout=True, kernel_name="python3"

@@ -76,19 +76,14 @@ def build_parser():
     return parser
 
 
-GC_THRESHOLDS = (20_000, 50, 100)
-"""The cycle collector's thresholds of a ``cdra-jax`` process (CPython's default: 700, 10, 10).
-A warm ``cdra-jax calibrate`` of 15 poses: 1.97 s against 2.10 s (medians of 5, alternated)."""
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``cdra-jax`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code.
 
     Enables ``jax_enable_x64`` before running any subcommand and turns ``ValueError``,
     ``OSError`` and a failed run-time check inside compiled code into one ``error: ...`` line.
     Run as the program (``argv`` not given), it also makes Python's cycle collector run less
-    often (:data:`GC_THRESHOLDS`): tracing and lowering the programs a command runs creates
-    millions of short-lived objects.
+    often (:data:`cdra_jax.compilation.GC_THRESHOLDS`): tracing and lowering the programs a
+    command runs creates millions of short-lived objects.
     """
     import gc
     import threading
@@ -96,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import jax
     import numpy as np
 
-    from ..compilation import enable_persistent_cache
+    from ..compilation import GC_THRESHOLDS, enable_persistent_cache
     from ..io.files import remove_temporary_files_on_sigterm
 
     jax.config.update("jax_enable_x64", True)
