@@ -75,7 +75,7 @@ def _accepted(name: str, value: Any) -> bool:
     return True
 
 
-def _traced(tree: Any) -> bool:
+def any_tracer(tree: Any) -> bool:
     """Whether any leaf of ``tree`` is a tracer (the call is inside ``jit``, ``vmap``, ``grad``)."""
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
 
@@ -126,7 +126,7 @@ class _LazyJit:
             args, kwargs = self._prepare((args, kwargs))
         # A traced argument means a nested call: go to the plain jit directly rather than
         # tracing the function once for JAX to refuse the options and once more without them.
-        if _traced((args, kwargs)):
+        if any_tracer((args, kwargs)):
             return self.plain(*args, **kwargs)
         try:  # nested without a traced argument (e.g. constants inside an outer jit)
             return self.jitted(*args, **kwargs)
@@ -223,11 +223,77 @@ def compiled_when_eager(fn: _F) -> _F:
 
     @functools.wraps(fn)
     def call(*args):
-        if _traced(args):
+        if any_tracer(args):
             return fn(*args)
-        return compiled(*(jax.numpy.asarray(a) if isinstance(a, _ARRAY_LIKE) else a for a in args))
+        return compiled(*(_as_array(a) if isinstance(a, _ARRAY_LIKE) else a for a in args))
 
     return cast(_F, call)
+
+
+def compiled_when_eager_args(*array_args: str) -> Callable[[_F], _F]:
+    """:func:`compiled_when_eager` for functions with keyword and static arguments.
+
+    Called on concrete values, ``fn`` runs as one compiled program (:func:`equinox.filter_jit`)
+    per shape and static part; traced inline, as written, when any argument is a tracer. The
+    arguments named in ``array_args`` are made arrays when they are array-likes (numbers,
+    lists, numpy arrays; not ``bool``), so that they are traced (each tolerance value does not
+    compile a program of its own); every other argument is a pytree whose arrays are traced and
+    whose other values (iteration caps, counts, flags, strings, ``None``) are static.
+    """
+
+    def wrap(fn: _F) -> _F:
+        import inspect
+
+        import equinox as eqx
+
+        signature = inspect.signature(fn)
+        compiled = eqx.filter_jit(fn)
+
+        @functools.wraps(fn)
+        def call(*args, **kwargs):
+            if any_tracer((args, kwargs)):
+                return fn(*args, **kwargs)
+            bound = signature.bind(*args, **kwargs)
+            for name in array_args:
+                value = bound.arguments.get(name)
+                if isinstance(value, _ARRAY_LIKE) and not isinstance(value, bool):
+                    bound.arguments[name] = _as_array(value)
+            return compiled(*bound.args, **bound.kwargs)
+
+        return cast(_F, call)
+
+    return wrap
+
+
+def eager_program(fn: Callable[..., Any], *static: Any) -> Callable[..., Any]:
+    """``fn`` with its leading arguments ``static`` (hashable: indices, names, flags, objects)
+    bound as static: one compiled program per value of ``static`` and shapes when called on
+    concrete arrays, traced inline under ``jit``, ``vmap`` and ``grad``
+    (:func:`compiled_when_eager`, which would make numbers and tuples arrays). Made once per
+    ``(fn, static)``."""
+    return _bound_program(fn, static)
+
+
+@functools.cache
+def _bound_program(fn: Callable[..., Any], static: tuple) -> Callable[..., Any]:
+    return compiled_when_eager(functools.partial(fn, *static))
+
+
+def device_array(a: Any) -> jax.Array:
+    """``a`` (a numpy array, a list of numbers) as a JAX array with the values and dtype of
+    ``jnp.asarray(a)``, without compiling anything: ``jnp.asarray`` of a numpy array compiles
+    a copy program for every new shape and dtype (jaxlib 0.10), ``jax.device_put`` does not.
+    The array put is a private copy (on the CPU the JAX array may share its memory), so the
+    caller's array can change freely afterwards."""
+    return jax.device_put(np.array(a))
+
+
+def _as_array(a: Any) -> Any:
+    """An array-like argument of a compiled call as a JAX array: numpy arrays and lists through
+    :func:`device_array`, Python numbers by ``jnp.asarray`` (weakly typed, as when traced)."""
+    if isinstance(a, np.ndarray | np.generic | list | tuple):
+        return device_array(a)
+    return jax.numpy.asarray(a)
 
 
 @functools.cache
