@@ -95,6 +95,13 @@ def fuzz(n: int):
 
 finite = st.floats(allow_nan=False, allow_infinity=False)
 
+
+def _device(a) -> jax.Array:
+    """``a`` (numbers, numpy) as a JAX array, as ``jnp.asarray`` gives it, without compiling:
+    ``jnp.asarray`` of a numpy array compiles a copy program for each new shape."""
+    return jax.device_put(np.array(a))
+
+
 # --------------------------------------------------------------------------- SE(3)
 
 
@@ -134,7 +141,7 @@ def _se3_round_trip(xi):
 @given(st.lists(twists, min_size=BATCH, max_size=BATCH))
 def test_se3_maps_are_finite_rigid_and_round_trip(xis):
     xi = np.stack(xis)
-    T, log, T2, q, R2, eye = (np.asarray(a) for a in _se3_round_trip(jnp.asarray(xi)))
+    T, log, T2, q, R2, eye = (np.asarray(a) for a in _se3_round_trip(_device(xi)))
     for a in (T, log, T2, q, R2, eye):
         assert np.all(np.isfinite(a))
     for i in range(BATCH):
@@ -155,7 +162,7 @@ def _losses(z):
 @fuzz(25)
 @given(st.lists(st.floats(-1e300, 1e300), min_size=16, max_size=16))
 def test_robust_losses_are_finite_with_weights_in_0_1(zs):
-    for rho, psi, w in _losses(jnp.asarray(zs)):
+    for rho, psi, w in _losses(_device(zs)):
         rho, psi, w = np.asarray(rho), np.asarray(psi), np.asarray(w)
         assert np.all(np.isfinite(rho)) and np.all(np.isfinite(psi)) and np.all(rho >= 0)
         assert np.all((w >= 0) & (w <= 1)) and np.all(w[np.abs(np.asarray(zs)) < 1e100] > 0)
@@ -181,9 +188,9 @@ def arms(draw):
         else:
             modules.append(prismatic(f"m{i}", axis, (100 * lo, 100 * hi)))
     xis = draw(st.lists(twists, min_size=k + 1, max_size=k + 1))
-    frames = np.asarray(lie.se3_exp(jnp.asarray(np.stack(xis))))
+    frames = np.asarray(lie.se3_exp(_device(np.stack(xis))))
     return Arm(
-        frames=jnp.asarray(frames),
+        frames=_device(frames),
         modules=tuple(modules),
         frame_names=tuple(f"f{j}" for j in range(k + 1)),
     )
@@ -195,7 +202,7 @@ def test_random_arms_have_finite_kinematics_identifiability_and_round_trip(arm, 
     rng = np.random.default_rng(seed)
     lim = arm.state_limits
     q = lim[:, 0] + rng.uniform(size=(5, arm.dof)) * (lim[:, 1] - lim[:, 0])
-    tool, after = (np.asarray(a) for a in forward_kinematics(arm, jnp.asarray(q)))
+    tool, after = (np.asarray(a) for a in forward_kinematics(arm, _device(q)))
     assert np.all(np.isfinite(tool)) and np.all(np.isfinite(after))
     for T in tool:
         assert rigid_transform_problem(T, tol=1e-9) is None
@@ -495,7 +502,7 @@ def measured_sets(draw):
         i = draw(st.integers(0, M - 1))
         what = draw(st.sampled_from(["random", "nan", "huge", "shift"]))
         if what == "random":
-            T[i] = np.asarray(lie.se3_exp(jnp.asarray(draw(twists))))
+            T[i] = np.asarray(lie.se3_exp(_device(draw(twists))))
         elif what == "nan":
             T[i, draw(st.integers(0, 2)), draw(st.integers(0, 3))] = np.nan
         elif what == "huge":
@@ -637,9 +644,9 @@ def test_cable_forward_kinematics_reports_every_row(junk, states, noise):
     """Rows 0-3 random lengths, rows 4-7 lengths of shoulder states plus noise: one code each,
     a finite state when successful, ``nonfinite`` exactly for non-finite input."""
     shoulder = ARM.module("shoulder")
-    exact = np.asarray(_lengths(shoulder, jnp.asarray(np.reshape(states, (4, 3)))))
+    exact = np.asarray(_lengths(shoulder, _device(np.reshape(states, (4, 3)))))
     L = np.concatenate([np.reshape(junk, (4, 6)), exact + noise])
-    sol = _fk(shoulder, jnp.asarray(L))
+    sol = _fk(shoulder, _device(L))
     codes = np.asarray(sol.result._value)
     assert set(codes.tolist()) <= set(range(len(CableFKResult._name_to_item)))
     nonfinite = ~np.all(np.isfinite(L), axis=1)
@@ -683,7 +690,7 @@ def test_tension_closure_margin_and_distribution_agree(A, wrench, floor):
 def test_holding_tensions_are_finite_or_flagged(q, payload):
     """Statics: gravity loads (with payload) and the tension distribution of every module."""
     payload = jnp.asarray(payload)  # an array: one compile for every payload
-    sols = _holding(ARM, jnp.asarray(q), payload)
+    sols = _holding(ARM, _device(q), payload)
     assert set(sols) == {"shoulder", "elbow", "wrist"}
     rows = np.all(np.isfinite(q), axis=1)
     for name, sol in sols.items():

@@ -20,6 +20,7 @@ from cdra_jax.calibration import (
     rigid_registration,
     to_nominal_gauge,
 )
+from cdra_jax.compilation import cached_filter_jit
 from cdra_jax.io import (
     MeasurementFileError,
     Measurements,
@@ -43,6 +44,14 @@ TRUE_XYZ = np.array([[20.0, 60.0, 5.0], [50.0, -40.0, 30.0], [-25.0, -20.0, 40.0
 """True marker positions: the two calibrated ones 20 mm per component from the model's."""
 DEVICE = np.asarray(lie.from_xyz_rotvec(np.array([400.0, 0.0, 0.0]), np.array([0, 0, np.pi / 2])))
 """The robot world frame in the measuring device's frame: 0.4 m and 90 degrees away."""
+M_POINTS = 30
+"""Rows of every marker data set (the auto solver, validate, the command line): one shape, so
+that the tests share the compiled programs."""
+M_POSES = 8
+"""Full poses of the solver comparisons (few: the guard test needs an unweighted fit that ends
+worse than nominal): one shape for the paper, LM and auto solvers."""
+M_HELD_OUT = 40
+"""Held-out states on which a calibration's predictions are compared with the truth."""
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +81,7 @@ def _points(truth, m, key, noise=0.0, occlusion=0.2, seed=1):
     return q, T, pts
 
 
-def _held_out_error(truth, cal_frames, cal_xyz, m=40):
+def _held_out_error(truth, cal_frames, cal_xyz, m=M_HELD_OUT):
     q = np.asarray(sample_states(jax.random.PRNGKey(99), truth, m))
     Tt = np.asarray(tool_pose(truth, q))
     Tc = np.asarray(tool_pose(truth.with_frames(cal_frames), q))
@@ -197,7 +206,7 @@ def test_rigid_registration_recovers_a_rigid_motion_and_refuses_a_line():
 def test_markers_with_occlusions_recover_the_arm_from_a_far_device_frame(arm, truth):
     # Noise-free, base 0.4 m / 90 degrees off, two markers 20 mm off per component: every
     # prediction exact.
-    q, _, pts = _points(truth, 30, key=1)
+    q, _, pts = _points(truth, M_POINTS, key=1)
     sol = calibrate_auto(arm, q, None, pts, ("a", "b", "c"))
     assert sol.converged and sol.start.registered and sol.start.placed == (0, 1)
     assert _held_out_error(truth, sol.frames, sol.xyz) < 1e-6
@@ -209,11 +218,11 @@ def test_tool_positions_only_recover_what_points_can_see(truth):
     # A laser tracker at the tool point: 3 residuals per row; the tool's orientation is not
     # identifiable and is kept at nominal, positions are predicted exactly.
     arm = default_arm()
-    q = np.asarray(sample_states(jax.random.PRNGKey(5), arm, 30))
+    q = np.asarray(sample_states(jax.random.PRNGKey(5), arm, M_POINTS))
     T = np.asarray(tool_pose(truth, q))
     sol = calibrate_auto(arm, q, None, T[:, None, :3, 3], ("origin",))
     assert sol.converged
-    q2 = np.asarray(sample_states(jax.random.PRNGKey(6), arm, 20))
+    q2 = np.asarray(sample_states(jax.random.PRNGKey(6), arm, M_HELD_OUT))
     p_true = np.asarray(tool_pose(truth, q2))[:, :3, 3]
     p_cal = np.asarray(tool_pose(arm.with_frames(sol.frames), q2))[:, :3, 3]
     assert np.abs(p_true - p_cal).max() < 1e-6
@@ -221,7 +230,7 @@ def test_tool_positions_only_recover_what_points_can_see(truth):
 
 
 def test_noise_scales_are_estimated_and_clean_data_are_not_flagged(arm, truth):
-    q, _, pts = _points(truth, 30, key=2, noise=0.05, seed=4)
+    q, _, pts = _points(truth, M_POINTS, key=2, noise=0.05, seed=4)
     sol = calibrate_auto(arm, q, None, pts, ("a", "b", "c"))
     assert sol.converged and sol.noise_source == "estimated"
     np.testing.assert_allclose(sol.sigma_points_mm, 0.05, rtol=0.2)
@@ -230,7 +239,7 @@ def test_noise_scales_are_estimated_and_clean_data_are_not_flagged(arm, truth):
 
 
 def test_a_gross_point_error_is_flagged_and_down_weighted(arm, truth):
-    q, _, pts = _points(truth, 30, key=3, noise=0.05, seed=5)
+    q, _, pts = _points(truth, M_POINTS, key=3, noise=0.05, seed=5)
     row = int(np.flatnonzero(np.isfinite(pts[:, 2, 0]))[0])
     pts[row, 2] += [30.0, 0.0, 0.0]
     sol = calibrate_auto(arm, q, None, pts, ("a", "b", "c"))
@@ -248,19 +257,22 @@ def test_every_solver_returns_the_same_frames_in_the_nominal_gauge():
     rng = np.random.default_rng(3)
     err = np.concatenate([rng.uniform(-1, 1, (4, 3)), rng.uniform(-0.05, 0.05, (4, 3))], 1)
     true = apply_frame_errors(arm, err)
-    q = np.asarray(sample_states(jax.random.PRNGKey(1), arm, 15))
+    q = np.asarray(sample_states(jax.random.PRNGKey(1), arm, M_POSES))
     T = np.asarray(tool_pose(true, q))
     obs = make_observations(arm, q, T, None)
     none = np.zeros((0, 3))
     nominal = np.asarray(arm.frames)
     frames = {}
-    for name, sol in (("paper", calibrate_paper(arm, q, T)), ("lm", calibrate_lm(arm, q, T))):
+    # The paper solver compiled as the workflow below compiles it (one program for both).
+    paper = cached_filter_jit(calibrate_paper)(arm, q, T, None, throw=False, singular_values=True)
+    assert paper.converged, paper.result
+    for name, sol in (("paper", paper), ("lm", calibrate_lm(arm, q, T))):
         g = to_nominal_gauge(np.asarray(sol.frames), none, nominal, none, obs)
         assert g.exact
         frames[name] = g.frames
     frames["auto"] = calibrate_auto(arm, q, T).frames
     # without the gauge the paper solver's minimum-norm steps drift along the elbow directions
-    assert np.abs(np.asarray(calibrate_paper(arm, q, T).frames) - frames["lm"]).max() > 1e-4
+    assert np.abs(np.asarray(paper.frames) - frames["lm"]).max() > 1e-4
     for name in ("paper", "auto"):
         np.testing.assert_allclose(frames[name], frames["lm"], atol=1e-9)
     # ... and through the workflow: the same identified errors
@@ -276,7 +288,7 @@ def test_every_solver_returns_the_same_frames_in_the_nominal_gauge():
 
 
 def test_validate_on_points_equals_an_independent_computation(arm, truth):
-    q, _, pts = _points(truth, 12, key=7, noise=0.0)
+    q, _, pts = _points(truth, M_POINTS, key=7, noise=0.0)
     meas = Measurements.from_arrays(arm, q, points={"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2]})
     v = workflows.validate(arm, meas)
     T = np.asarray(tool_pose(arm, q))
@@ -302,9 +314,9 @@ def test_cli_simulate_calibrate_model_out_validate_on_markers(arm, tmp_path, cap
         return cli.main([str(a) for a in argv])
 
     fit, test, truth = tmp_path / "fit.csv", tmp_path / "test.csv", tmp_path / "truth.json"
-    assert run("simulate", *common, "--poses", 30, "--seed", 1, "--occlusion", 0.2,
+    assert run("simulate", *common, "--poses", M_POINTS, "--seed", 1, "--occlusion", 0.2,
                "--marker-error", 20, "--out", fit, "--truth", truth) == 0  # fmt: skip
-    assert run("simulate", *common, "--poses", 20, "--seed", 2, "--errors", truth,
+    assert run("simulate", *common, "--poses", M_POINTS, "--seed", 2, "--errors", truth,
                "--out", test) == 0  # fmt: skip
     assert set(json.loads(truth.read_text())["markers"]) == {"a", "b", "c"}
     out, cal = tmp_path / "r.json", tmp_path / "cal.toml"
@@ -327,7 +339,7 @@ def test_cli_simulate_calibrate_model_out_validate_on_markers(arm, tmp_path, cap
 
 
 def test_point_data_with_a_pose_solver_is_refused(arm, truth):
-    q, _, pts = _points(truth, 8, key=8)
+    q, _, pts = _points(truth, M_POINTS, key=8)
     meas = Measurements.from_arrays(arm, q, points={"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2]})
     with pytest.raises(ValueError, match="fits full tool poses; these data measure points"):
         workflows.calibrate(arm, meas, solver="paper")
@@ -340,7 +352,7 @@ def test_the_guard_fires_when_an_unweighted_fit_is_worse_than_nominal(tmp_path):
     arm = default_arm()
     rng = np.random.default_rng(2)
     err = np.concatenate([rng.uniform(-0.5, 0.5, (4, 3)), rng.uniform(-0.002, 0.002, (4, 3))], 1)
-    q = np.asarray(sample_states(jax.random.PRNGKey(11), arm, 8))
+    q = np.asarray(sample_states(jax.random.PRNGKey(11), arm, M_POSES))
     T = np.asarray(tool_pose(apply_frame_errors(arm, err), q)).copy()
     for k in range(len(T)):
         T[k, :3, :3] = np.asarray(lie.so3_exp(rng.normal(size=3) * 0.05)) @ T[k, :3, :3]
@@ -380,7 +392,7 @@ def test_diagnose_calibrates_rough_markers_before_it_looks_for_missing_physics(a
 
 
 def test_validate_register_places_the_reference_in_the_device_frame(arm, truth):
-    q, _, pts = _points(truth, 12, key=10)
+    q, _, pts = _points(truth, M_POINTS, key=10)
     meas = Measurements.from_arrays(arm, q, points={"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2]})
     plain = workflows.validate(truth, meas, compare=arm)
     registered = workflows.validate(truth, meas, compare=arm, register_reference=True)

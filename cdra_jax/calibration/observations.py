@@ -34,6 +34,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, module_poses, moved_frames
+from ..compilation import device_array
 from .model import NoiseModel, point_residual, residual_twist, tool_points, whitening
 
 
@@ -82,10 +83,10 @@ def make_observations(
     P = np.where(seen[..., None], P, 0.0)
     return Observations(
         poses=_module_poses(arm, q),
-        full_poses=jnp.asarray(T),
-        pose_mask=jnp.asarray(mask),
-        points=jnp.asarray(P),
-        seen=jnp.asarray(seen),
+        full_poses=device_array(T),
+        pose_mask=device_array(mask),
+        points=device_array(P),
+        seen=device_array(seen),
     )
 
 
@@ -115,7 +116,7 @@ def padded(obs: Observations, rows: int) -> Observations:
     def pad(a, fill):
         a = np.asarray(a)
         block = np.broadcast_to(np.asarray(fill, a.dtype), (extra,) + a.shape[1:])
-        return jnp.asarray(np.concatenate([a, block]))
+        return device_array(np.concatenate([a, block]))
 
     return Observations(
         poses=pad(obs.poses, np.eye(4)),
@@ -262,6 +263,20 @@ def raw_errors(frames, xyz, obs: Observations) -> tuple[Array, Array, Array]:
     ang = jnp.where(obs.pose_mask, ang, nan)
     e = jnp.where(obs.seen[..., None], obs.points - pts, nan)
     return dpos, ang, e
+
+
+@eqx.filter_jit
+def raw_errors_at(
+    theta: ArrayLike,
+    frames0: ArrayLike,
+    xyz0: ArrayLike,
+    obs: Observations,
+    calibrated: tuple[int, ...],
+) -> tuple[Array, Array, Array]:
+    """:func:`raw_errors` of the model at the parameters ``theta`` (:func:`apply_parameters`),
+    as one compiled program (the auto solver records them after every accepted step)."""
+    frames, xyz = apply_parameters(theta, frames0, xyz0, calibrated)
+    return raw_errors(frames, xyz, obs)
 
 
 def error_table(frames, xyz, obs: Observations) -> tuple[np.ndarray, np.ndarray]:

@@ -42,10 +42,10 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..arm import Arm, prismatic, revolute
+from ..compilation import device_array
 from .model import MAX_LENGTH_MM, RESERVED_MODULE_NAMES
 
 CONVENTIONS = ("standard", "modified")
@@ -246,7 +246,7 @@ def arm_from_dh(
         taken.add(cand)
         names.append(cand)
     return Arm(
-        frames=jnp.asarray(frames),
+        frames=device_array(frames),
         modules=tuple(mods),
         frame_names=tuple(names),
         name=name,

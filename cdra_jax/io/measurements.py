@@ -58,7 +58,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm
 from ..calibration.validation import MIN_POSES
-from ..compilation import jit
+from ..compilation import device_array, jit
 from .files import write_text_atomic
 from .rows import MeasurementFileError, RowContext
 from .state_sources import STATE_SOURCES, StateSource
@@ -370,7 +370,7 @@ def _float64(fn, *args) -> tuple[np.ndarray, ...]:
     """``fn(*args)`` computed in float64 whatever JAX's global setting (reading and writing
     files is lossless also where ``jax_enable_x64`` is off), as numpy arrays."""
     with jax.enable_x64(True):
-        out = fn(*(np.asarray(a, dtype=np.float64) for a in args))
+        out = fn(*(device_array(np.asarray(a, dtype=np.float64)) for a in args))
         leaves = out if isinstance(out, tuple) else (out,)
         return tuple(np.asarray(a, dtype=np.float64) for a in leaves)
 

@@ -51,15 +51,17 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 import tomli_w
 
 from .. import lie
 from ..arm import MODULE_KINDS, Arm, EffectRecord, Marker, Module
+from ..compilation import device_array
 from .files import write_text_atomic
 
 _ORTHO_TOL = 1e-6
+
+
 _DEFAULT_MODEL = "cdra.toml"
 
 
@@ -180,7 +182,7 @@ def _frame_matrix(source: str, i: int, spec: Mapping[str, Any]) -> np.ndarray:
             f"angle {np.linalg.norm(rv):.4g} rad is above {_ROTVEC_MAX_ANGLE:g} rad: "
             "not a rotation vector in radians",
         )
-    return np.asarray(lie.from_xyz_rotvec(jnp.asarray(xyz), jnp.asarray(rv)))
+    return np.asarray(lie.from_xyz_rotvec(device_array(xyz), device_array(rv)))
 
 
 def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
@@ -294,10 +296,10 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
                 f"give 'offset' for every cable or for none "
                 f"({len(offset)} of {len(cables)} have one)",
             )
-        kwargs["cable_base"] = jnp.asarray(np.stack(base))
-        kwargs["cable_platform"] = jnp.asarray(np.stack(plat))
+        kwargs["cable_base"] = device_array(np.stack(base))
+        kwargs["cable_platform"] = device_array(np.stack(plat))
         if offset:
-            kwargs["cable_offset"] = jnp.asarray(np.asarray(offset))
+            kwargs["cable_offset"] = device_array(offset)
     for key, unit in (("mass", "kg"), ("pretension", "N"), ("stiffness", "N/mm")):
         if key in spec:
             v = spec[key]
@@ -311,11 +313,11 @@ def _module(source: str, i: int, spec: Mapping[str, Any]) -> Module:
                 )
             kwargs[key] = float(v)
     if "com" in spec:
-        kwargs["com"] = jnp.asarray(_vector(source, f"{where}.com", spec["com"], 3))
+        kwargs["com"] = device_array(_vector(source, f"{where}.com", spec["com"], 3))
     return Module(
         name=name,
         kind=kind,
-        axis=jnp.asarray(axis),
+        axis=device_array(axis),
         limits=tuple((float(a), float(b)) for a, b in lim),
         **kwargs,
     )
@@ -363,12 +365,12 @@ def arm_from_dict(spec: Mapping[str, Any], source: str = "<model>") -> Arm:
     markers = _markers(source, spec.get("markers", []))
     effects = effects_from_list(spec.get("effects", []), source)
     return Arm(
-        frames=jnp.asarray(mats),
+        frames=device_array(mats),
         modules=mods,
         frame_names=tuple(names),
         name=spec["name"],
         description=spec.get("description", ""),
-        gravity=jnp.asarray(gravity),
+        gravity=device_array(gravity),
         markers=markers,
         effects=effects,
     )
@@ -549,7 +551,7 @@ def arm_to_dict(arm: Arm, *, exact: bool = False) -> dict[str, Any]:
         if exact:
             frames.append({"name": name, "matrix": _floats(M)})
         else:
-            xyz, rv = lie.to_xyz_rotvec(jnp.asarray(M))
+            xyz, rv = lie.to_xyz_rotvec(device_array(M))
             frames.append({"name": name, "xyz": _floats(xyz), "rotvec": _floats(rv)})
     modules = []
     for m in arm.modules:

@@ -42,11 +42,11 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
 from .. import lie
 from ..arm import Arm, tool_pose
+from ..compilation import device_array
 from .measurements import (
     POSITION_COLUMNS,
     QUATERNION_COLUMNS,
@@ -100,7 +100,7 @@ def check_plausibility(arm: Arm, meas: Measurements) -> tuple[str, ...]:
     warnings: list[str] = []
     warnings += _check_states(arm, meas)
     if meas.measured is not None and meas.m > 0:
-        T_model = np.asarray(tool_pose(arm, jnp.asarray(meas.q)), dtype=float)
+        T_model = np.asarray(tool_pose(arm, device_array(meas.q)), dtype=float)
         if not np.all(np.isfinite(T_model)):
             raise MeasurementFileError(
                 meas.source, "the model's tool poses at these module states are not finite"
@@ -108,7 +108,7 @@ def check_plausibility(arm: Arm, meas: Measurements) -> tuple[str, ...]:
         warnings += _check_positions(meas, T_model)
         warnings += _check_orientations(meas, T_model)
     elif meas.points is not None and meas.m > 0:
-        T_model = np.asarray(tool_pose(arm, jnp.asarray(meas.q)), dtype=float)
+        T_model = np.asarray(tool_pose(arm, device_array(meas.q)), dtype=float)
         _check_point_scale(arm, meas, T_model)
     warnings += _check_repeats(meas)
     return tuple(warnings)
@@ -269,7 +269,7 @@ def far_rows(dist: np.ndarray) -> tuple[np.ndarray, float]:
 
 def _angles(R: np.ndarray, R_model: np.ndarray) -> np.ndarray:
     rel = np.swapaxes(R, -1, -2) @ R_model
-    return np.asarray(lie.rotation_angle(jnp.asarray(rel)), dtype=float)
+    return np.asarray(lie.rotation_angle(device_array(rel)), dtype=float)
 
 
 def _check_orientations(meas: Measurements, T_model: np.ndarray) -> list[str]:
@@ -284,7 +284,7 @@ def _check_orientations(meas: Measurements, T_model: np.ndarray) -> list[str]:
         rv = np.stack([meas.values[c] for c in cols], axis=-1)
         beyond_pi = bool(np.any(np.abs(rv) > math.pi))
         if given > ORIENTATION_TOL or beyond_pi:
-            R_deg = np.asarray(lie.so3_exp(jnp.asarray(np.deg2rad(rv))), dtype=float)
+            R_deg = np.asarray(lie.so3_exp(device_array(np.deg2rad(rv))), dtype=float)
             alternatives.append(("look like degrees", "multiply by pi/180", R_deg))
     else:
         cols = QUATERNION_COLUMNS
@@ -292,7 +292,7 @@ def _check_orientations(meas: Measurements, T_model: np.ndarray) -> list[str]:
             quat = np.stack([meas.values[c] for c in cols], axis=-1)
             xyzw = quat[:, [3, 0, 1, 2]]  # the columns read as (x, y, z, w)
             xyzw = xyzw / np.linalg.norm(xyzw, axis=-1, keepdims=True)
-            R_sl = np.asarray(lie.quaternion_to_rotation(jnp.asarray(xyzw)), dtype=float)
+            R_sl = np.asarray(lie.quaternion_to_rotation(device_array(xyzw)), dtype=float)
             alternatives.append(
                 ("look scalar-last (x, y, z, w)", "put the scalar part w first", R_sl)
             )

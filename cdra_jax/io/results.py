@@ -71,7 +71,7 @@ from ..calibration.model import NoiseModel, pose_errors
 from ..calibration.observations import Observations, error_table, row_means
 from ..calibration.robust import OUTLIER_THRESHOLD, RobustSolution, standardized_residuals
 from ..calibration.solution import CalibrationSolution, result_messages, result_names
-from ..compilation import filter_jit
+from ..compilation import device_array, filter_jit
 from .files import json_text, write_text_atomic
 from .measurements import rigid_transform_problem
 
@@ -190,7 +190,8 @@ def result_to_dict(
     cal_frames = np.asarray(solution.frames, dtype=float)
     errors = np.asarray(solution.errors, dtype=float)
     (nxyz, nrv), (cxyz, crv), (p0, r0), (p1, r1) = jax.tree_util.tree_map(
-        np.asarray, _readouts(arm, jnp.asarray(cal_frames), jnp.asarray(q), jnp.asarray(measured))
+        np.asarray,
+        _readouts(arm, device_array(cal_frames), device_array(q), device_array(measured)),
     )
     frames = {
         name: {
@@ -207,9 +208,9 @@ def result_to_dict(
         z, scale = (
             np.asarray(a, dtype=float)
             for a in _standardized(
-                arm.with_frames(jnp.asarray(cal_frames)),
-                jnp.asarray(q),
-                jnp.asarray(measured),
+                arm.with_frames(device_array(cal_frames)),
+                device_array(q),
+                device_array(measured),
                 noise,
                 rank=solution.rank,
             )
@@ -435,7 +436,7 @@ def calibrated_arm_from_result(result: Mapping[str, Any], nominal: Arm) -> Arm:
         raise ValueError(
             f"the result's frames {tuple(frames)} do not match the model's {nominal.frame_names}"
         )
-    arm = nominal.with_frames(jnp.asarray(np.stack([frames[n] for n in nominal.frame_names])))
+    arm = nominal.with_frames(device_array(np.stack([frames[n] for n in nominal.frame_names])))
     markers = result.get("markers") or {}
     known = {mk.name for mk in nominal.markers}
     return arm.with_marker_positions(
@@ -518,8 +519,8 @@ def auto_result_to_dict(
             }
         residuals.append(row)
     nominal_frames = np.asarray(arm.frames, dtype=float)
-    nxyz, nrv = (np.asarray(a) for a in lie.to_xyz_rotvec(jnp.asarray(nominal_frames)))
-    cxyz, crv = (np.asarray(a) for a in lie.to_xyz_rotvec(jnp.asarray(sol.frames)))
+    nxyz, nrv = (np.asarray(a) for a in lie.to_xyz_rotvec(device_array(nominal_frames)))
+    cxyz, crv = (np.asarray(a) for a in lie.to_xyz_rotvec(device_array(sol.frames)))
     frames = {
         name: {
             "nominal": _pose_dict(nominal_frames[j], nxyz[j], nrv[j]),

@@ -43,10 +43,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..arm import Arm, Module
+from ..compilation import device_array
 from .model import RESERVED_MODULE_NAMES, arm_to_dict
 
 MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
@@ -338,7 +338,7 @@ def chain_arm(urdf: Any, base: str, tip: str, source: str, name: str | None = No
             Module(
                 name=j.name,
                 kind="prismatic" if j.type == "prismatic" else "revolute",
-                axis=jnp.asarray(_axis(j, source)),
+                axis=device_array(_axis(j, source)),
                 limits=(_limits(j, source),),
             )
         )
@@ -351,7 +351,7 @@ def chain_arm(urdf: Any, base: str, tip: str, source: str, name: str | None = No
     raw_names = [base, *(j.child for j in movable[:-1]), tip]
     frame_names = _unique([_frame_name(n) for n in raw_names], {j.name for j in movable})
     arm = Arm(
-        frames=jnp.asarray(np.stack(frames)),
+        frames=device_array(np.stack(frames)),
         modules=tuple(modules),
         frame_names=tuple(frame_names),
         name=str(name or urdf.robot.name or "robot"),
