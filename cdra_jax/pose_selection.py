@@ -83,7 +83,7 @@ from .arm import Arm, chain, module_poses
 from .calibration.linear import cholesky_of_symmetric, default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, tool_points, whitening
 from .calibration.validation import MIN_POSES, require_finite_states
-from .compilation import filter_jit, jit
+from .compilation import compiled_when_eager, filter_jit, jit
 from .simulation import StateSampler, sample_poses
 from .uncertainty import IDENTIFIABLE_TOL, predicted_pose_covariance
 
@@ -171,6 +171,7 @@ def identifiable_basis(blocks: ArrayLike, rcond: float | None = None) -> np.ndar
     return Vt[keep].T
 
 
+@compiled_when_eager
 def log_det_information(blocks: ArrayLike, basis: ArrayLike) -> Array:
     """``log det(W^T F W)`` of a pose set given its blocks ``(m, 6, n)`` and ``W (n, r)``.
 
@@ -271,6 +272,7 @@ def _swap_while_improving(best_swap, idx: Array, max_swaps: int) -> tuple[Array,
     return idx, n
 
 
+@compiled_when_eager
 def _prediction_weight(reference_blocks: Array, basis: Array, position_mm: Array) -> Array:
     """``Q = s_p^2 W^T mean_h(A_h[:3]^T A_h[:3]) W (r, r)``: weight of the I-criterion.
 
@@ -439,7 +441,19 @@ def _projected_blocks(
     """``(A (N, 6, n), W (n, r), B = A W (N, 6, r))``: blocks, identifiable basis, projection."""
     A = information_blocks(arm, pool, noise)
     W = identifiable_basis(A, rcond)
-    return A, W, jnp.einsum("nai,ir->nar", A, jnp.asarray(W, A.dtype))
+    return A, W, _project(A, jnp.asarray(W, A.dtype))
+
+
+@compiled_when_eager
+def _project(A: Array, W: Array) -> Array:
+    """``B = A W``: ``(N, k, n), (n, r) -> (N, k, r)``."""
+    return jnp.einsum("nai,ir->nar", A, W)
+
+
+@compiled_when_eager
+def _ridge(B: Array) -> Array:
+    """``eps``: ``_RIDGE`` times the mean per-pose information ``sum(B * B) / (N r)``."""
+    return _RIDGE * jnp.sum(B * B) / (B.shape[0] * B.shape[-1])
 
 
 def _reference_weight(
@@ -451,11 +465,16 @@ def _reference_weight(
     if pos.ndim:
         raise ValueError("criterion 'i-opt' needs a scalar noise.position_mm (one device)")
     if arm.markers:
-        # Every marker's position rows, averaged over the markers: E[dp^2] per point.
-        n_pts = len(arm.markers)
-        P = jnp.einsum("hai,ir->har", blocks, jnp.asarray(basis, dtype)) * pos
-        return jnp.einsum("har,has->rs", P, P) / (blocks.shape[0] * n_pts)
+        return _marker_weight(blocks, jnp.asarray(basis, dtype), pos, len(arm.markers))
     return _prediction_weight(blocks, jnp.asarray(basis, dtype), pos)
+
+
+@filter_jit
+def _marker_weight(blocks: Array, basis: Array, position_mm: Array, n_pts: int) -> Array:
+    """The I-criterion weight of a model measured by ``n_pts`` markers: every marker's position
+    rows of the blocks ``(H, 3 n_pts, n)``, averaged over the markers (E[dp^2] per point)."""
+    P = jnp.einsum("hai,ir->har", blocks, basis) * position_mm
+    return jnp.einsum("har,has->rs", P, P) / (blocks.shape[0] * n_pts)
 
 
 def marker_prediction_rms(
@@ -474,10 +493,16 @@ def marker_prediction_rms(
     ref = information_blocks(arm, np.asarray(reference, dtype=float), noise)
     if _sees_outside(ref, W):
         return float("inf")
-    B = jnp.einsum("nai,ir->nar", A, jnp.asarray(W, A.dtype))
-    M = jnp.einsum("nar,nas->rs", B, B)
     Q = _reference_weight(arm, np.asarray(reference, dtype=float), noise, W)
-    return float(jnp.sqrt(jnp.trace(jnp.linalg.solve(M, Q))))
+    return float(_marker_rms(A, jnp.asarray(W, A.dtype), Q))
+
+
+@compiled_when_eager
+def _marker_rms(A: Array, W: Array, Q: Array) -> Array:
+    """``sqrt(tr(Q M^-1))`` with ``M = sum_i B_i^T B_i``, ``B_i = A_i W``."""
+    B = jnp.einsum("nai,ir->nar", A, W)
+    M = jnp.einsum("nar,nas->rs", B, B)
+    return jnp.sqrt(jnp.trace(jnp.linalg.solve(M, Q)))
 
 
 def select_from_pool(
@@ -530,7 +555,7 @@ def select_from_pool(
         raise ValueError(f"cannot select m = {m} poses from a pool of {pool.shape[0]}")
     A, W, B = _projected_blocks(arm, pool, None if criterion == "o1" else noise, rcond)
     r = W.shape[1]
-    eps = _RIDGE * jnp.sum(B * B) / (pool.shape[0] * r)
+    eps = _ridge(B)
     max_swaps = 10 * m if max_exchanges is None else max_exchanges
     if criterion == "i-opt":
         assert noise is not None  # checked above
@@ -539,8 +564,9 @@ def select_from_pool(
     else:
         idx_greedy, idx, n_swaps = _select_jit(B, m, eps, bool(exchange), max_swaps, 1e-10)
     idx = np.asarray(idx)
-    log_det = float(log_det_information(A[idx], W))
-    log_det_greedy = float(log_det_information(A[np.asarray(idx_greedy)], W))
+    A_host = np.asarray(A)
+    log_det = float(log_det_information(A_host[idx], W))
+    log_det_greedy = float(log_det_information(A_host[np.asarray(idx_greedy)], W))
     if not np.isfinite(log_det) and np.isfinite(log_det_greedy):
         # The I-exchange may trade away a direction that the reference positions do not see
         # (e.g. a tool orientation offset); a set that identifies the pool's whole subspace is
@@ -634,8 +660,10 @@ class PredictionBound:
 
 
 @filter_jit
-def _approximate_i_design(F: Array, Q: Array, iterations: int):
-    """Multiplicative algorithm for ``min_w tr(Q M(w)^-1)``, ``M(w) = sum_i w_i F_i``."""
+def _approximate_i_design(B: Array, Q: Array, iterations: int):
+    """Multiplicative algorithm for ``min_w tr(Q M(w)^-1)``, ``M(w) = sum_i w_i F_i``,
+    ``F_i = B_i^T B_i``."""
+    F = jnp.einsum("nar,nas->nrs", B, B)
     N = F.shape[0]
 
     def sensitivities(w):
@@ -697,8 +725,7 @@ def prediction_bound(
     reference = pool if reference is None else _check_pool(arm, reference, "reference")
     _, W, B = _projected_blocks(arm, pool, noise, rcond)
     Q = _reference_weight(arm, reference, noise, W)
-    F = jnp.einsum("nar,nas->nrs", B, B)
-    w, phi, dmax = _approximate_i_design(F, Q, iterations)
+    w, phi, dmax = _approximate_i_design(B, Q, iterations)
     w = np.asarray(w)
     lower = float(np.sqrt(float(phi) ** 2 / float(dmax) / m))
     approximate = float(np.sqrt(float(phi) / m))

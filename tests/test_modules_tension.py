@@ -62,7 +62,9 @@ def test_closure_verdicts_and_margins_agree_with_scipy(cdra, index):
     lim = np.asarray(module.limits)
     centre, half = lim.mean(1), (lim[:, 1] - lim[:, 0])
     # twice the joint box, so that poses with and without tension closure both occur
-    u = jax.random.uniform(jax.random.PRNGKey(index), (R, module.dof), minval=-1, maxval=1)
+    u = np.asarray(
+        jax.random.uniform(jax.random.PRNGKey(index), (R, module.dof), minval=-1, maxval=1)
+    )
     q = centre + u * half
     A = np.asarray(structure_matrix(module, q))
     verdict, margin = map(np.asarray, _closure(A))
@@ -147,11 +149,13 @@ def test_sampler_raises_when_too_few_states_are_feasible(cdra):
         jax.block_until_ready(_sample(jax.random.PRNGKey(0), arm, 4))
     # throw=False (the sweeps): NaN states for that batch element only, so its solve ends
     # nonfinite while the others go on
-    both = jax.vmap(lambda k, a: sample_feasible_states(k, a, 4, throw=False), in_axes=(0, None))
+    both = jax.jit(
+        jax.vmap(lambda k, a: sample_feasible_states(k, a, 4, throw=False), in_axes=(0, None))
+    )
     q = np.asarray(both(jax.random.split(jax.random.PRNGKey(0), 2), arm))
     assert q.shape == (2, 4, 1) and np.all(np.isnan(q))
-    ok = np.asarray(sample_feasible_states(jax.random.PRNGKey(0), cdra, 4, throw=False))
-    np.testing.assert_array_equal(ok, np.asarray(_sample(jax.random.PRNGKey(0), cdra, 4)))
+    ok = np.asarray(sample_feasible_states(jax.random.PRNGKey(0), cdra, M, throw=False))
+    np.testing.assert_array_equal(ok, np.asarray(_sample(jax.random.PRNGKey(0), cdra, M)))
 
 
 def test_arm_closure_gives_the_verdicts_of_tension_closure_and_hull_margin(cdra):
@@ -165,7 +169,7 @@ def test_arm_closure_gives_the_verdicts_of_tension_closure_and_hull_margin(cdra)
             ok &= verdict & (margin / float(lever_scale(mod)) > min_margin)
         return ok
 
-    fused = jax.jit(arm_tension_closure, static_argnums=2)
+    fused = jax.jit(arm_tension_closure)  # one program for every min_margin
     u = np.asarray(sample_states(jax.random.PRNGKey(11), cdra, 20 * R))
     for q in (u, 1.6 * u):  # 1.6 x the box: every module also loses closure
         for min_margin in (0.0, DEFAULT_MIN_MARGIN, 0.2):

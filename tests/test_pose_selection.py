@@ -4,6 +4,7 @@ approximate-design bound and the plan-poses CLI."""
 import csv
 import itertools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -27,13 +28,23 @@ from cdra_jax.uncertainty import predicted_pose_covariance
 NOISE = NoiseModel(0.08, 1e-3)
 
 
+@eqx.filter_jit
+def _core_blocks(arm, q, noise):
+    tool, after = chain(arm.frames, module_poses(arm, q))
+    D = calibration_jacobian(after)
+    return D, (None if noise is None else whitening(tool, noise))
+
+
 def _blocks_oracle(arm, q, noise):
     """Whitened blocks from the core's own pieces (chain, Eq. 8 Jacobian, whitening)."""
-    tool, after = chain(arm.frames, module_poses(arm, q))
-    D = np.asarray(calibration_jacobian(after))
+    D, G = _core_blocks(arm, jnp.asarray(q), noise)
+    D = np.asarray(D)
     if noise is None:
         return D
-    return np.asarray(whitening(tool, noise)) @ D
+    return np.asarray(G) @ D
+
+
+_sample_states = jax.jit(sample_states, static_argnums=2)  # one program per state count
 
 
 def _log_det(blocks, W):
@@ -44,7 +55,7 @@ def _log_det(blocks, W):
 
 @pytest.fixture(scope="module")
 def pool(cdra):
-    return np.asarray(sample_states(jax.random.PRNGKey(5), cdra, 14))
+    return np.asarray(_sample_states(jax.random.PRNGKey(5), cdra, 14))
 
 
 def test_blocks_and_basis(cdra, pool):
@@ -87,7 +98,8 @@ def test_selected_poses_predict_better_than_random(cdra):
     m = 6  # pool and m as in the CLI test below, so the jitted selection compiles once
     sel = select_poses(cdra, m, NOISE, key=jax.random.PRNGKey(0), pool_size=300)
     assert sel.states.shape == (m, 7) and sel.rank == 22
-    q_eval = sample_states(jax.random.PRNGKey(1), cdra, 100)
+    # held-out states as many as the pool: the selection's own prediction program is reused
+    q_eval = _sample_states(jax.random.PRNGKey(1), cdra, 300)
     chosen = float(predicted_pose_covariance(cdra, sel.states, NOISE, q_eval).expected_delta_p)
     rng = np.random.default_rng(0)
     random_sets = [
@@ -103,8 +115,9 @@ def test_selected_poses_predict_better_than_random(cdra):
 
 def test_o1_index_and_sampler(cdra):
     def high_elbow(key, arm, m):  # a custom feasible-pose sampler: elbow bent beyond 1 rad
-        q = sample_states(key, arm, m)
-        return q.at[:, 3].set(1.0 + 0.5 * q[:, 3])
+        q = np.array(_sample_states(key, arm, m))
+        q[:, 3] = 1.0 + 0.5 * q[:, 3]
+        return q
 
     m = 6
     sel = select_poses(
@@ -157,17 +170,19 @@ def test_unbounded_prediction_where_the_pool_identifies_too_little(cdra, pool):
     """A pool of one repeated state identifies only that tool pose (rank 6): its error is
     bounded there (4 poses: position covariance s_p^2 / 4 I, exact), unbounded (inf) at other
     reference states, for the selection's prediction and for the lower bound alike."""
-    same = np.repeat(pool[:1], 6, axis=0)
+    same = np.repeat(pool[:1], len(pool), axis=0)  # the pool's shape: compiled programs reused
     here = 0.08 * np.sqrt(3 / 4)
     sel = select_from_pool(cdra, same, 4, NOISE, criterion="d-opt", exchange=False)
     assert sel.rank == 6 and sel.prediction_rms == pytest.approx(here, rel=1e-8)
+    # other states only, as many as the pool (the programs compiled above are reused)
+    others = np.concatenate([pool[1:], pool[1:2]])
     elsewhere = select_from_pool(
-        cdra, same, 4, NOISE, criterion="d-opt", exchange=False, reference=pool[1:4]
+        cdra, same, 4, NOISE, criterion="d-opt", exchange=False, reference=others
     )
     assert np.isinf(elsewhere.prediction_rms)
     b = prediction_bound(cdra, same, 4, NOISE, iterations=10)
     assert b.lower == pytest.approx(here, rel=1e-8) and b.approximate == pytest.approx(here)
-    b = prediction_bound(cdra, same, 4, NOISE, reference=pool[1:4], iterations=10)
+    b = prediction_bound(cdra, same, 4, NOISE, reference=others, iterations=10)
     assert np.isinf(b.lower) and np.isinf(b.approximate)
 
 
@@ -199,9 +214,9 @@ def test_plan_poses_cli(cdra, tmp_path, capsys):
 
 def test_tool_positions_used_for_whitening(cdra, pool):
     """d-opt weighs orientation rows by the lever arm of the model tool position (Eq. 7)."""
-    A = np.asarray(information_blocks(cdra, pool[:2], NOISE))
-    p = np.asarray(lie.translation(tool_pose(cdra, pool[:2])))
-    D = _blocks_oracle(cdra, pool[:2], None)
+    A = np.asarray(information_blocks(cdra, pool, NOISE))
+    p = np.asarray(lie.translation(tool_pose(cdra, pool)))
+    D = _blocks_oracle(cdra, pool, None)
     top = (D[:, :3] - np.einsum("kij,kjn->kin", np.asarray(lie.hat3(p)), D[:, 3:])) / 0.08
     np.testing.assert_allclose(A[:, :3], top, rtol=1e-10, atol=1e-8)
 
@@ -212,7 +227,7 @@ def test_i_opt_reaches_a_swap_local_optimum_of_the_predicted_heldout_error(cdra,
     propagated pose covariance): no single swap improves the I-optimal set, it beats the
     D-optimal one, and the approximate-design bound lies below all 2002 subsets of 5 from 14."""
     m = 5
-    ref = np.asarray(sample_states(jax.random.PRNGKey(6), cdra, 40))
+    ref = np.asarray(_sample_states(jax.random.PRNGKey(6), cdra, 40))
     sel = select_from_pool(cdra, pool, m, NOISE, reference=ref)
     assert sel.criterion == "i-opt" and len(set(sel.indices)) == m
     swaps = [
@@ -223,9 +238,9 @@ def test_i_opt_reaches_a_swap_local_optimum_of_the_predicted_heldout_error(cdra,
     subsets = list(itertools.combinations(range(len(pool)), m))
     sets = np.array([list(sel.indices), *swaps, *subsets])  # one batch: one compile
     rms = np.asarray(
-        jax.vmap(lambda q: predicted_pose_covariance(cdra, q, NOISE, ref).expected_delta_p)(
-            jnp.asarray(pool[sets])
-        )
+        jax.jit(
+            jax.vmap(lambda q: predicted_pose_covariance(cdra, q, NOISE, ref).expected_delta_p)
+        )(jnp.asarray(pool[sets]))
     )
     chosen, swapped, best = rms[0], rms[1 : 1 + len(swaps)].min(), rms[1 + len(swaps) :].min()
     assert sel.prediction_rms == pytest.approx(chosen, rel=1e-9)

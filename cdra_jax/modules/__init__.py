@@ -6,6 +6,12 @@ module base and the moving platform (:mod:`.cables`), the tension-closure condit
 a pose holdable (:mod:`.tension`), the cable tensions holding the arm against gravity
 (:mod:`.statics`), cable lengths as measurement data (:mod:`.cable_data`) and the
 self-calibration of a module from redundant cable lengths (:mod:`.self_calibration`).
+
+Called on concrete arrays, the array functions (lengths and forward kinematics, structure
+matrices and closure tests, the feasible sampler, loads and tensions, self-calibration) each run
+as one compiled program per shape and per value of their static arguments (iteration caps,
+counts, flags), not operation by operation; inside ``jit``, ``vmap`` or ``grad`` they are traced
+inline.
 """
 
 from ._results import result_messages as result_messages

@@ -35,7 +35,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from ..arm import Arm, Module
-from ..compilation import jit
+from ..compilation import compiled_when_eager_args, jit
 from ._linalg import small_inv
 from ._results import result_names
 from .cables import (
@@ -52,6 +52,7 @@ def cable_length_columns(arm: Arm) -> dict[str, tuple[str, ...]]:
     return {m.name: cable_length_names(m) for m in arm.modules if m.n_cables}
 
 
+@compiled_when_eager_args("q")
 def arm_cable_lengths(arm: Arm, q: ArrayLike) -> dict[str, Array]:
     """Measured cable lengths of every module with cables at flat states ``q (..., dof)``.
 
@@ -65,6 +66,7 @@ def arm_cable_lengths(arm: Arm, q: ArrayLike) -> dict[str, Array]:
     }
 
 
+@compiled_when_eager_args("key", "q", "noise_mm")
 def simulate_cable_lengths(
     key: Array, arm: Arm, q: ArrayLike, noise_mm: float | ArrayLike = 0.0
 ) -> dict[str, Array]:
@@ -187,7 +189,7 @@ def check_cable_lengths(
         # compiled solver is reused for tables of the same shape.
         filled = np.where(bad[:, None], L[good[0]], L)
         sol, w = _fk(module, jnp.asarray(filled), residual_tol)
-        sol, w = jax.tree_util.tree_map(lambda x: x[good], (sol, w))
+        sol, w = jax.tree_util.tree_map(lambda x: np.asarray(x)[good], (sol, w))
         st = np.asarray(sol.state)
         rr = np.asarray(sol.residual_rms)
         res = np.asarray(sol.residuals)

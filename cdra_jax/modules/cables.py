@@ -43,7 +43,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Module
-from ..compilation import batched_like
+from ..compilation import batched_like, compiled_when_eager_args
 from ._linalg import small_solve
 from ._results import select
 
@@ -71,6 +71,7 @@ def cable_length_names(module: Module) -> tuple[str, ...]:
     return tuple(f"{module.name}.l{i + 1}" for i in range(module.n_cables))
 
 
+@compiled_when_eager_args("state")
 def platform_points(module: Module, state: ArrayLike) -> Array:
     """Platform attachments ``p_i = R(q) a_i + t(q)``, module base frame: ``(..., n, 3)`` mm."""
     _, a, _ = require_cables(module)
@@ -78,6 +79,7 @@ def platform_points(module: Module, state: ArrayLike) -> Array:
     return jnp.einsum("...ij,nj->...ni", T[..., :3, :3], a.astype(T.dtype)) + T[..., None, :3, 3]
 
 
+@compiled_when_eager_args("state")
 def cable_vectors(module: Module, state: ArrayLike) -> tuple[Array, Array, Array]:
     """Platform points, unit pull directions and straight-line lengths at ``state (..., dof)``.
 
@@ -93,6 +95,7 @@ def cable_vectors(module: Module, state: ArrayLike) -> tuple[Array, Array, Array
     return p, v / d[..., None], d
 
 
+@compiled_when_eager_args("state")
 def cable_lengths(module: Module, state: ArrayLike) -> Array:
     """Inverse kinematics: measured cable lengths ``(..., n)`` mm at module states ``(..., dof)``.
 
@@ -103,6 +106,7 @@ def cable_lengths(module: Module, state: ArrayLike) -> Array:
     return d + o.astype(d.dtype)
 
 
+@compiled_when_eager_args("state")
 def length_jacobian(module: Module, state: ArrayLike) -> Array:
     """Derivative of the cable lengths w.r.t. the state increment: ``(..., n, dof)``.
 
@@ -174,6 +178,7 @@ def _scalar_starts(module: Module, dtype) -> Array:
     return jnp.asarray(np.concatenate([[home], grid])[:, None], dtype)
 
 
+@compiled_when_eager_args("lengths", "initial", "tol", "residual_tol")
 def cable_forward_kinematics(
     module: Module,
     lengths: ArrayLike,

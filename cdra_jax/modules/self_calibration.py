@@ -63,7 +63,7 @@ from jax.typing import ArrayLike
 from .. import lie
 from ..arm import Arm, Module
 from ..calibration.linear import default_rcond
-from ..compilation import batched_like
+from ..compilation import batched_like, compiled_when_eager_args
 from ..identifiability import format_combination, sparse_basis
 from ._linalg import small_inv
 from ._results import select
@@ -85,12 +85,14 @@ def parameter_names(module: Module) -> tuple[str, ...]:
     return tuple(out)
 
 
+@compiled_when_eager_args()
 def module_parameters(module: Module) -> Array:
     """The ``(7 n,)`` parameter vector of a module (order of :func:`parameter_names`)."""
     b, a, o = require_cables(module)
     return jnp.concatenate([b, a, o[:, None]], axis=-1).reshape(-1)
 
 
+@compiled_when_eager_args("theta")
 def with_parameters(module: Module, theta: ArrayLike) -> Module:
     """``module`` with cable geometry and offsets from a ``(7 n,)`` parameter vector."""
     n = module.n_cables
@@ -157,6 +159,7 @@ def _eliminate(Jp: Array, Jq: Array, r: Array):
     return M.reshape(-1, Jp.shape[-1]), y.reshape(-1), Ginv
 
 
+@compiled_when_eager_args("states")
 def reduced_jacobian(module: Module, states: ArrayLike) -> Array:
     """Jacobian of the lengths w.r.t. the parameters with the states eliminated: ``(m n, 7n)``.
 
@@ -270,6 +273,7 @@ class SelfCalibrationSolution(eqx.Module):
         return module_parameters(self.module)
 
 
+@compiled_when_eager_args("lengths", "initial_states", "tol", "ftol", "rcond")
 def self_calibrate(
     module: Module,
     lengths: ArrayLike,
@@ -425,6 +429,7 @@ def self_calibrate(
     return sol
 
 
+@compiled_when_eager_args()
 def gauge_invariants(module: Module) -> dict[str, Array]:
     """Quantities cable lengths determine for any module state, per cable.
 

@@ -38,7 +38,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, Module, chain, module_poses
-from ..compilation import batched_like
+from ..compilation import batched_like, compiled_when_eager_args
 from ._results import select
 from .tension import structure_matrix
 
@@ -57,6 +57,7 @@ def total_mass(arm: Arm) -> float:
     return float(sum(0.0 if m.mass is None else m.mass for m in arm.modules))
 
 
+@compiled_when_eager_args("q")
 def world_frames(arm: Arm, q: Array) -> tuple[Array, Array, Array]:
     """World poses of the tool ``(..., 4, 4)``, the module platforms and the module bases
     ``(..., K, 4, 4)``."""
@@ -66,6 +67,7 @@ def world_frames(arm: Arm, q: Array) -> tuple[Array, Array, Array]:
     return tool, after, before
 
 
+@compiled_when_eager_args("q", "payload_kg")
 def gravity_torques(arm: Arm, q: ArrayLike, payload_kg: ArrayLike = 0.0) -> Array:
     """Torque of gravity about each module's origin from the bodies distal to it: ``(..., K, 3)``.
 
@@ -111,6 +113,7 @@ def _distal_weight(arm: Arm, q: Array, payload_kg: ArrayLike) -> Array:
     return total[..., None] * g
 
 
+@compiled_when_eager_args("q", "payload_kg")
 def gravity_loads(arm: Arm, q: ArrayLike, payload_kg: ArrayLike = 0.0) -> Array:
     """Generalised gravity load each module's cables must cancel, flat ``(..., dof)``.
 
@@ -171,6 +174,7 @@ class TensionSolution(eqx.Module):
         return self.result == TensionResult.successful
 
 
+@compiled_when_eager_args("A", "wrench", "floor", "rtol")
 def distribute_tensions(
     A: ArrayLike,
     wrench: ArrayLike,
@@ -294,6 +298,7 @@ def module_floor(module: Module) -> float:
     return 0.0 if module.pretension is None else float(module.pretension)
 
 
+@compiled_when_eager_args("q", "payload_kg", "floor")
 def holding_tensions(
     arm: Arm,
     q: ArrayLike,

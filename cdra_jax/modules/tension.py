@@ -48,7 +48,7 @@ from jax import Array, lax
 from jax.typing import ArrayLike
 
 from ..arm import Arm, Module, sample_states
-from ..compilation import batched_like
+from ..compilation import batched_like, compiled_when_eager_args
 from .cables import cable_vectors, require_cables
 
 DEFAULT_MIN_MARGIN = 0.05
@@ -58,6 +58,7 @@ _RTOL = 1e-9
 _BLOCK = 8  # draws per closure-test block of sample_feasible_states (for small m)
 
 
+@compiled_when_eager_args("state")
 def structure_matrix(module: Module, state: ArrayLike) -> Array:
     """Structure matrix ``A (..., d, n)`` of ``module`` at ``state (..., dof)``, base frame.
 
@@ -87,6 +88,7 @@ def _unit(v: Array, eps: Array) -> tuple[Array, Array]:
     return v / jnp.where(ok, n, 1.0)[..., None] * ok[..., None], ok
 
 
+@compiled_when_eager_args("A", "rtol")
 def tension_closure(A: ArrayLike, rtol: float = _RTOL) -> Array:
     """Exact test: do the columns of ``A (..., d, n)`` positively span ``R^d``? ``(...)`` bool.
 
@@ -123,6 +125,7 @@ def tension_closure(A: ArrayLike, rtol: float = _RTOL) -> Array:
     return rank_ok & ~jnp.any(separating, axis=-1)
 
 
+@compiled_when_eager_args("A")
 def hull_margin(A: ArrayLike) -> Array:
     """Signed distance from the origin to the boundary of the hull of the columns of ``A``.
 
@@ -239,6 +242,7 @@ def lever_scale(module: Module) -> float | Array:
     return jnp.max(jnp.linalg.norm(a, axis=-1))
 
 
+@compiled_when_eager_args("state")
 def closure_margin(module: Module, state: ArrayLike) -> Array:
     """Dimensionless tension-closure margin ``hull_margin / lever_scale`` at ``state``: ``(...)``.
 
@@ -247,11 +251,13 @@ def closure_margin(module: Module, state: ArrayLike) -> Array:
     return hull_margin(structure_matrix(module, state)) / lever_scale(module)
 
 
+@compiled_when_eager_args("state")
 def has_tension_closure(module: Module, state: ArrayLike) -> Array:
     """Exact tension-closure verdict of ``module`` at ``state (..., dof)``: ``(...)`` bool."""
     return tension_closure(structure_matrix(module, state))
 
 
+@compiled_when_eager_args("q")
 def arm_closure_margins(arm: Arm, q: ArrayLike) -> Array:
     """:func:`closure_margin` of every module at flat states ``q (..., dof)``: ``(..., K)``.
 
@@ -267,6 +273,7 @@ def arm_closure_margins(arm: Arm, q: ArrayLike) -> Array:
     return jnp.stack(out, axis=-1)
 
 
+@compiled_when_eager_args("q", "min_margin")
 def arm_tension_closure(arm: Arm, q: ArrayLike, min_margin: float | ArrayLike = 0.0) -> Array:
     """Whether every module has tension closure (and margin above ``min_margin``): ``(...)``.
 
@@ -286,6 +293,7 @@ def arm_tension_closure(arm: Arm, q: ArrayLike, min_margin: float | ArrayLike = 
     return ok
 
 
+@compiled_when_eager_args("key", "min_margin")
 def sample_feasible_states(
     key: Array,
     arm: Arm,
@@ -351,6 +359,7 @@ def sample_feasible_states(
     )
 
 
+@compiled_when_eager_args("key", "min_margin")
 def feasible_fraction(key: Array, arm: Arm, n: int = 10000, min_margin: float = 0.0) -> Array:
     """Fraction of ``n`` uniform draws in the joint box that :func:`arm_tension_closure` accepts."""
     return jnp.mean(arm_tension_closure(arm, sample_states(key, arm, n), min_margin))
