@@ -125,7 +125,7 @@ def test_lumped_moments_are_the_identifiable_combinations_of_the_statics(seed, k
                 assert v == "lumped_axial" and np.allclose(np.asarray(mod.axis), [0, 0, 1])
                 continue
             c = Candidate(e, mod.name)
-            lumped = np.asarray(c.features(arm, q, {}).module_twist[:, i, 3:])  # (m, 3, n)
+            lumped = np.asarray(c.features(arm, q, {}).module_twist)[:, i, 3:]  # (m, 3, n)
             ref = masses
             if v != "lumped":
                 a = np.asarray(mod.axis)
@@ -170,7 +170,7 @@ def test_bending_with_masses_is_a_combination_of_the_lumped_columns(seed, kinds)
         heavy = _with_masses(arm, seed, massless=j - 1)
         loc = arm.frame_names[j]
         c = Candidate(effect("link_bending", "lumped"), loc)
-        B = np.asarray(c.features(arm, q, {}).frame_deflection[:, j]).reshape(
+        B = np.asarray(c.features(arm, q, {}).frame_deflection)[:, j].reshape(
             -1, len(c.parameters(arm))
         )
         y = np.asarray(bending_deflection(heavy, q, j)).reshape(-1)

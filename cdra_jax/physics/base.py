@@ -35,7 +35,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, module_poses
-from ..compilation import compiled_when_eager
+from ..compilation import compiled_when_eager, eager_program
 
 
 @dataclass(frozen=True)
@@ -309,7 +309,14 @@ def stacked_features(cands: Sequence[Candidate], arm: Arm, q: ArrayLike, aux: Au
     """Features of several candidates at states ``q (m, dof)``, concatenated along ``p`` in
     the order given: each candidate's :meth:`Candidate.features`. The terms that several of
     them need are evaluated once (:func:`sharing_terms`), and the rounding-level columns of
-    all of them are found in one pass (each against its own candidate's largest column)."""
+    all of them are found in one pass (each against its own candidate's largest column).
+
+    Called on concrete arrays, one compiled program per candidates and shapes; traced inline
+    under ``jit``, ``vmap`` and ``grad``."""
+    return eager_program(_stacked_features, tuple(cands))(arm, q, aux)
+
+
+def _stacked_features(cands: tuple[Candidate, ...], arm: Arm, q: ArrayLike, aux: Aux) -> Features:
     with sharing_terms():
         raw = [c._effect_features(arm, q, aux) for c in cands]
     segments = np.repeat(np.arange(len(raw)), [f.n_params for f in raw])

@@ -387,14 +387,14 @@ def _module_bases(arm: Arm, q: Array) -> Array:
 def _axis_along_gravity(arm: Arm, i: int, tol: float = 1e-6) -> bool:
     """Whether module ``i``'s axis is parallel to gravity in every pose: it is at the zero
     state and every module before it only translates or turns about the vertical."""
-    q0 = jnp.zeros((1, arm.dof), jnp.asarray(arm.frames).dtype)
-    bases = _module_bases(arm, q0)[0]
-    g = jnp.asarray(arm.gravity, q0.dtype)
-    g = g / jnp.linalg.norm(g)
+    q0 = jnp.asarray(np.zeros((1, arm.dof), np.asarray(arm.frames).dtype))
+    bases = np.asarray(_module_bases(arm, q0)[0])  # the rest in numpy: a check, not traced
+    g = np.asarray(arm.gravity, q0.dtype)
+    g = g / np.linalg.norm(g)
 
     def vertical(k: int) -> bool:
-        a = bases[k, :3, :3] @ jnp.asarray(arm.modules[k].axis, q0.dtype)
-        return float(jnp.linalg.norm(jnp.cross(a, g))) < tol
+        a = bases[k, :3, :3] @ np.asarray(arm.modules[k].axis, q0.dtype)
+        return float(np.linalg.norm(np.cross(a, g))) < tol
 
     before_ok = all(
         m.kind == "prismatic" or (m.kind == "revolute" and vertical(k))

@@ -28,6 +28,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, module_poses
+from ..compilation import compiled_when_eager, eager_program
 
 
 def _mass_properties(arm: Arm, dtype) -> tuple[Array, Array]:
@@ -54,6 +55,11 @@ def link_tip_loads(arm: Arm, q: ArrayLike, j: int, payload_kg: ArrayLike = 0.0) 
     k = len(arm.modules)
     if not 1 <= j <= k - 1:
         raise ValueError(f"link index must be between 1 and {k - 1} (an inner frame), got {j}")
+    return eager_program(_link_tip_loads, j)(arm, q, payload_kg)
+
+
+def _link_tip_loads(j: int, arm: Arm, q: ArrayLike, payload_kg: ArrayLike) -> tuple:
+    k = len(arm.modules)
     q = jnp.asarray(q)
     dtype = q.dtype
     tool, after = chain(jnp.asarray(arm.frames, dtype), module_poses(arm, q))
@@ -102,7 +108,14 @@ def bending_deflection(
     See the module docstring; start frame of the link, mm and rad per 1/(N mm^2). The link
     must have a non-zero length (``LinkBending.missing`` reports it otherwise).
     """
-    F, M, P, a = link_tip_loads(arm, q, j, payload_kg)
+    k = len(arm.modules)
+    if not 1 <= j <= k - 1:
+        raise ValueError(f"link index must be between 1 and {k - 1} (an inner frame), got {j}")
+    return eager_program(_bending_deflection, j, split)(arm, q, payload_kg)
+
+
+def _bending_deflection(j: int, split: bool, arm: Arm, q: ArrayLike, payload_kg: ArrayLike):
+    F, M, P, a = _link_tip_loads(j, arm, q, payload_kg)
     L, e = _link_axis(arm, j, F.dtype)
     perp = lambda v: v - jnp.einsum("...i,i->...", v, e)[..., None] * e
     Ft, Mt, Pt = perp(F), perp(M), perp(P)
@@ -129,6 +142,7 @@ directions across its joint axis, :func:`across_axis`) or ``"travel"`` (the dist
 along a prismatic module's travel)."""
 
 
+@compiled_when_eager
 def across_axis(axis: ArrayLike) -> Array:
     """``(2, 3)``: the directions ``u``, ``v`` across a unit joint axis ``a``: ``u`` is the
     coordinate axis least aligned with ``a`` (the first of a tie) made perpendicular to it,
@@ -200,6 +214,10 @@ def moment_torques(arm: Arm, q: ArrayLike, terms: tuple[MomentTerm, ...]) -> Arr
     Multiplied by a compliance and ``|g|`` (N/kg), the lumped values are the products that a
     gravity-driven deflection identifies (see :func:`moment_terms`).
     """
+    return eager_program(_moment_torques, tuple(terms))(arm, q)
+
+
+def _moment_torques(terms: tuple[MomentTerm, ...], arm: Arm, q: ArrayLike) -> Array:
     q = jnp.asarray(q)
     poses = module_poses(arm, q)
     _, after = chain(jnp.asarray(arm.frames, q.dtype), poses)
@@ -236,13 +254,19 @@ def lumped_bending_deflection(
     length). A rigid rotation at the link's start (a compliant joint) has ``delta = L theta``:
     the cantilever's shapes tell the two apart.
     """
+    return eager_program(_lumped_bending_deflection, j, tuple(terms))(arm, q)
+
+
+def _lumped_bending_deflection(
+    j: int, terms: tuple[MomentTerm, ...], arm: Arm, q: ArrayLike
+) -> Array:
     q = jnp.asarray(q)
     L, e = _link_axis(arm, j, q.dtype)
-    g = world_gravity_direction(arm, q, j)
+    g = _world_gravity_direction(j, arm, q)
     gt = g - jnp.einsum("...i,i->...", g, e)[..., None] * e
     weight = jnp.concatenate([2.0 * L * gt / 3.0, jnp.cross(e, gt)], -1)[..., None]
     _, after = chain(jnp.asarray(arm.frames, q.dtype), module_poses(arm, q))
-    M = jnp.einsum("...ji,...jn->...in", after[..., j - 1, :3, :3], moment_torques(arm, q, terms))
+    M = jnp.einsum("...ji,...jn->...in", after[..., j - 1, :3, :3], _moment_torques(terms, arm, q))
     Mt = jnp.moveaxis(M - jnp.einsum("...in,i->...n", M, e)[..., None, :] * e[:, None], -1, -2)
     moment = jnp.moveaxis(_tip_moment_deflection(Mt, e, L) / L, -2, -1)
     return jnp.concatenate([weight, moment], axis=-1)
@@ -250,6 +274,10 @@ def lumped_bending_deflection(
 
 def world_gravity_direction(arm: Arm, q: ArrayLike, j: int) -> Array:
     """Unit gravity direction in the start frame of fixed frame ``j`` (world for ``j = 0``)."""
+    return eager_program(_world_gravity_direction, j)(arm, q)
+
+
+def _world_gravity_direction(j: int, arm: Arm, q: ArrayLike) -> Array:
     q = jnp.asarray(q)
     g = jnp.asarray(arm.gravity, q.dtype)
     g = g / jnp.linalg.norm(g)
