@@ -83,7 +83,7 @@ from jax.typing import ArrayLike
 
 from .. import lie
 from ..arm import Arm, chain, error_twists, module_poses
-from ..compilation import batched_like
+from ..compilation import any_tracer, batched_like, filter_jit
 from . import implicit
 from .gauss_newton import calibrate_paper
 from .levenberg_marquardt import calibrate_lm
@@ -329,9 +329,10 @@ def standardized_residuals(
     return _z(e, scale), scale
 
 
-def _noise_scale(noise: NoiseModel | None, dtype) -> Array | None:
+def _check_scalar_noise(noise: NoiseModel | None) -> None:
+    """Raise ``ValueError`` unless each std of ``noise`` is a number (shape ``()``)."""
     if noise is None:
-        return None
+        return
     for name in ("position_mm", "rotation_rad"):
         if np.ndim(getattr(noise, name)):
             raise ValueError(
@@ -339,6 +340,12 @@ def _noise_scale(noise: NoiseModel | None, dtype) -> Array | None:
                 f"{np.shape(getattr(noise, name))}: it needs one noise std per quantity (the "
                 "robust weights are the per-pose part)"
             )
+
+
+def _noise_scale(noise: NoiseModel | None, dtype) -> Array | None:
+    _check_scalar_noise(noise)
+    if noise is None:
+        return None
     return jnp.stack(
         [jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype)]
     )
@@ -377,6 +384,12 @@ def calibrate_robust(
     singular_values: bool = False,
 ) -> RobustSolution:
     """Robust calibration of the fixed transforms of ``arm`` by IRLS (see the module docstring).
+
+    Called on concrete arrays, the fit runs as one compiled program per problem shape and
+    static configuration (``loss``, ``solver``, ``max_rounds``, ``weight_tol``, ``threshold``,
+    ``reject_outliers``, ``max_iterations``, ``rcond``, ``allow_underdetermined``,
+    ``singular_values``; the noise values are traced); inside ``jit`` or ``vmap`` it is traced
+    inline.
 
     Args:
         arm: nominal model (start of round 0 and reference of the identified errors).
@@ -419,6 +432,51 @@ def calibrate_robust(
     if max_rounds < 0:
         raise ValueError(f"max_rounds must be >= 0, got {max_rounds}")
     q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
+    _check_scalar_noise(noise)
+    # Called on concrete values, the whole fit runs as one compiled program per static
+    # configuration (rather than its set-up and assembly op by op and its loop as a program of
+    # its own); traced (inside jit or vmap), it is traced inline.
+    irls = _irls if any_tracer((arm, q, measured, noise)) else _irls_compiled
+    out, failed = irls(
+        arm,
+        q,
+        measured,
+        noise,
+        loss=loss,
+        solver=solver,
+        max_rounds=max_rounds,
+        weight_tol=weight_tol,
+        threshold=float(threshold),
+        reject_outliers=bool(reject_outliers),
+        max_iterations=max_iterations,
+        rcond=rcond,
+        allow_underdetermined=allow_underdetermined,
+        singular_values=singular_values,
+    )
+    if throw:
+        out = out.solution.result.error_if(out, failed)
+    return out
+
+
+def _irls(
+    arm: Arm,
+    q: Array,
+    measured: Array,
+    noise: NoiseModel | None,
+    *,
+    loss: RobustLoss,
+    solver: str,
+    max_rounds: int,
+    weight_tol: float,
+    threshold: float,
+    reject_outliers: bool,
+    max_iterations: int | None,
+    rcond: float | None,
+    allow_underdetermined: bool,
+    singular_values: bool,
+) -> tuple[RobustSolution, Array]:
+    """The IRLS fit of :func:`calibrate_robust` on a checked problem: the solution, and whether
+    its result is not successful."""
     dtype = measured.dtype
     m = measured.shape[0]
     sigma = _noise_scale(noise, dtype)
@@ -540,13 +598,9 @@ def calibrate_robust(
         # Least squares on the unflagged poses (flagged: weight 0, i.e. infinite std).
         w_in = jnp.where(outliers, 0.0, 1.0).astype(dtype)
         sw = jnp.sqrt(w_in)
-        # A failed trial (not ok) can carry a NaN scale, which NoiseModel rejects when it is
-        # concrete (outside jit); its refit is discarded below, so any positive scale will do.
-        # (A Python branch, taken only outside jit: the traced program stays as it was.)
-        s_in = scale
-        if not isinstance(ok, jax.core.Tracer) and not bool(ok):
-            s_in = jnp.ones_like(scale)
-        sol_r = solve(frames, NoiseModel(position_mm=s_in[0] / sw, rotation_rad=s_in[1] / sw))
+        # A failed trial (not ok) can carry a NaN scale; its refit is discarded below. (This
+        # function always runs traced, so NoiseModel's value check does not see the scale.)
+        sol_r = solve(frames, NoiseModel(position_mm=scale[0] / sw, rotation_rad=scale[1] / sw))
         refit = (
             ok
             & (jnp.sum(~outliers) >= 4)
@@ -602,6 +656,7 @@ def calibrate_robust(
         threshold=float(threshold),
         scale_source="MAD" if sigma is None else "noise model",
     )
-    if throw:
-        out = sol.result.error_if(out, sol.result != RESULTS.successful)
-    return out
+    return out, sol.result != RESULTS.successful
+
+
+_irls_compiled = filter_jit(_irls)

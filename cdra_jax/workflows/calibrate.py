@@ -47,7 +47,7 @@ from ..calibration import (
 from ..calibration.observations import marker_table, row_means
 from ..calibration.registration import initial_guess
 from ..calibration.robust import OUTLIER_THRESHOLD
-from ..compilation import cached_filter_jit
+from ..compilation import cached_filter_jit, filter_jit
 from ..conditioning import conditioning, conditioning_from_jacobian
 from ..identifiability import (
     analyze,
@@ -522,17 +522,20 @@ def _calibrate_effects(
         J, arm.param_names, meas.m, warnings=pose_set_warnings(arm, meas.q)
     )
     cond = conditioning_from_jacobian(J, arm.param_names)
-    q = jnp.asarray(meas.q)
-    aux = {k: jnp.asarray(v, q.dtype) for k, v in meas.aux.items()}
-    y0 = jnp.asarray(np.concatenate([np.zeros(n), fit.theta_start]))
-    y1 = jnp.asarray(np.concatenate([fit.errors.reshape(-1), fit.theta]))
-    cands = fit.candidates
-    pos0, r0 = prediction_error_table(extended_tool_pose(y0, arm, cands, q, aux), fit.data)
-    pos1, r1 = prediction_error_table(extended_tool_pose(y1, arm, cands, q, aux), fit.data)
-    p0, p1 = row_means(pos0), row_means(pos1)
+    q = np.asarray(meas.q)
+    q = q.astype(jnp.result_type(q.dtype))  # the dtype jnp.asarray gives (float32 without x64)
+    aux = {k: np.asarray(v, q.dtype) for k, v in meas.aux.items()}
+    y0 = np.concatenate([np.zeros(n), fit.theta_start])
+    y1 = np.concatenate([fit.errors.reshape(-1), fit.theta])
     # Standardised residual per row: RMS of its measured whitened entries at the noise scales.
-    scales = jnp.asarray([fit.noise.position_mm, fit.noise.rotation_rad, fit.point_noise_mm])
-    res = np.asarray(data_residual(y1, arm, cands, q, aux, fit.data, scales), float)
+    scales = np.asarray([fit.noise.position_mm, fit.noise.rotation_rad, fit.point_noise_mm])
+    tool0, tool1, res = _effect_readouts(
+        y0, y1, arm, fit.candidates, q, aux, fit.data, scales.astype(jnp.result_type(scales))
+    )
+    pos0, r0 = prediction_error_table(tool0, fit.data)
+    pos1, r1 = prediction_error_table(tool1, fit.data)
+    p0, p1 = row_means(pos0), row_means(pos1)
+    res = np.asarray(res, float)
     m, n_pts = meas.m, len(meas.point_names)
     sq = (res[: 6 * m].reshape(m, 6) ** 2).sum(1) + (res[6 * m :].reshape(m, -1) ** 2).sum(1)
     counts = 6 * np.asarray(fit.data.pose_mask) + 3 * np.asarray(fit.data.seen).sum(1)
@@ -671,6 +674,15 @@ def _calibrate_effects(
         model_label=model_label,
         data_label=data_label,
     )
+
+
+@filter_jit
+def _effect_readouts(y0, y1, arm, candidates, q, aux, data, scales):
+    """Tool poses of the extended model at ``y0`` (start) and ``y1`` (fit), and the stacked
+    whitened residual at ``y1`` (one compiled program per problem shape)."""
+    tool0 = extended_tool_pose(y0, arm, candidates, q, aux)
+    tool1 = extended_tool_pose(y1, arm, candidates, q, aux)
+    return tool0, tool1, data_residual(y1, arm, candidates, q, aux, data, scales)
 
 
 def _float(x: Any) -> float | None:
