@@ -72,7 +72,7 @@ from .arm import Arm, chain, module_poses
 from .calibration.linear import default_rcond
 from .calibration.model import NoiseModel, calibration_jacobian, whitening
 from .calibration.validation import require_finite_states
-from .compilation import filter_jit
+from .compilation import compiled_when_eager, filter_jit
 from .identifiability import analyze as analyze_identifiability
 
 DEFAULT_CONFIDENCE = 0.95
@@ -215,17 +215,12 @@ class ParameterUncertainty(eqx.Module):
     def null_space(self) -> Array:
         """Rows spanning the null space of ``D~`` (what the poses do not identify), ``(n, n)``:
         the rows of ``basis`` past ``rank``, the first ``rank`` rows zero."""
-        n = self.basis.shape[-1]
-        null = jnp.arange(n) >= self.rank[..., None]
-        return jnp.where(null[..., :, None], self.basis, 0.0)
+        return _null_rows(self.basis, self.rank)
 
     @property
     def row_space_projector(self) -> Array:
         """Orthogonal projector onto the identifiable subspace, ``(n, n)``."""
-        n = self.basis.shape[-1]
-        keep = jnp.arange(n) < self.rank[..., None]
-        Vr = jnp.where(keep[..., :, None], self.basis, 0.0)
-        return jnp.einsum("...ki,...kj->...ij", Vr, Vr)
+        return _row_space_projector(self.basis, self.rank)
 
     def _directions(self, directions: ArrayLike) -> tuple[Array, bool]:
         c = jnp.asarray(directions, self.covariance.dtype)
@@ -236,9 +231,7 @@ class ParameterUncertainty(eqx.Module):
         """``|P_null c| / |c|`` for each row ``c`` of ``directions (..., k, n)``: ``(..., k)``
         (a single direction ``(n,)``: ``(...)``)."""
         c, single = self._directions(directions)
-        Pc = jnp.einsum("...ij,...kj->...ki", self.row_space_projector, c)
-        norm = jnp.linalg.norm(c, axis=-1)
-        frac = jnp.linalg.norm(c - Pc, axis=-1) / jnp.where(norm > 0, norm, 1.0)
+        frac = _null_fraction(self.basis, self.rank, c)
         return frac[..., 0] if single else frac
 
     def identifiable(self, directions: ArrayLike, tol: float = IDENTIFIABLE_TOL) -> Array:
@@ -261,12 +254,46 @@ class ParameterUncertainty(eqx.Module):
             ValueError: ``directions`` whose last axis is not ``n`` (or a scalar).
         """
         c, single = self._directions(directions)
-        var = jnp.einsum("...ki,...ij,...kj->...k", c, self.covariance, c)
-        out = jnp.where(self.identifiable(c, tol), var, jnp.inf)
+        out = _bound(self.basis, self.rank, self.covariance, c, tol)
         return out[..., 0] if single else out
 
 
-@filter_jit
+# The computations of the properties and methods above (and of PoseCovariance's below), each
+# one compiled program per shape when called on concrete values (a report, a script) rather
+# than a dozen operations dispatched one by one; traced inline under jit, vmap and grad.
+@compiled_when_eager
+def _null_rows(basis: Array, rank: Array) -> Array:
+    """The rows of ``basis (..., n, n)`` past ``rank (...)``, the first ``rank`` rows zero."""
+    n = basis.shape[-1]
+    null = jnp.arange(n) >= rank[..., None]
+    return jnp.where(null[..., :, None], basis, 0.0)
+
+
+@compiled_when_eager
+def _row_space_projector(basis: Array, rank: Array) -> Array:
+    """``V_r^T V_r`` with ``V_r`` the first ``rank`` rows of ``basis``: ``(..., n, n)``."""
+    n = basis.shape[-1]
+    keep = jnp.arange(n) < rank[..., None]
+    Vr = jnp.where(keep[..., :, None], basis, 0.0)
+    return jnp.einsum("...ki,...kj->...ij", Vr, Vr)
+
+
+@compiled_when_eager
+def _null_fraction(basis: Array, rank: Array, c: Array) -> Array:
+    """``|P_null c| / |c|`` per row of ``c (..., k, n)``: ``(..., k)``."""
+    Pc = jnp.einsum("...ij,...kj->...ki", _row_space_projector(basis, rank), c)
+    norm = jnp.linalg.norm(c, axis=-1)
+    return jnp.linalg.norm(c - Pc, axis=-1) / jnp.where(norm > 0, norm, 1.0)
+
+
+@compiled_when_eager
+def _bound(basis: Array, rank: Array, covariance: Array, c: Array, tol: ArrayLike) -> Array:
+    """``c^T C c`` per row of ``c (..., k, n)``, ``inf`` where the row's null fraction is above
+    ``tol``: ``(..., k)``."""
+    var = jnp.einsum("...ki,...ij,...kj->...k", c, covariance, c)
+    return jnp.where(_null_fraction(basis, rank, c) <= tol, var, jnp.inf)
+
+
 def parameter_covariance(
     arm: Arm,
     q: ArrayLike,
@@ -291,6 +318,16 @@ def parameter_covariance(
             "parameter_covariance needs a NoiseModel (position_mm, rotation_rad): the covariance "
             "of the estimate is in units of the measurement noise"
         )
+    # One call form for the compiled function, whichever way the arguments were passed (a
+    # direct call and analyze_uncertainty's share one program per shape).
+    return _parameter_covariance(arm, q, noise, measured, rcond)
+
+
+@filter_jit
+def _parameter_covariance(
+    arm: Arm, q: ArrayLike, noise: NoiseModel, measured: ArrayLike | None, rcond: float | None
+) -> ParameterUncertainty:
+    """:func:`parameter_covariance`, compiled (``rcond`` static)."""
     D = whitened_jacobian(arm, q, noise, measured)
     n = D.shape[-1]
     if D.shape[-2] < n:  # fewer rows than parameters: pad so that the SVD gives all n directions
@@ -356,35 +393,53 @@ class PoseCovariance(eqx.Module):
     def bounded(self) -> Array:
         """Per pose, whether both the position and the orientation covariance are finite:
         ``(k,)`` bool."""
-        return jnp.isfinite(_trace(self.position)) & jnp.isfinite(_trace(self.rotation))
+        return _both_finite(self.position, self.rotation)
 
     @property
     def position_rms(self) -> Array:
         """Expected RMS position error per pose, ``sqrt(trace)`` (mm): ``(k,)``; ``inf`` where
         unbounded."""
-        return _sqrt(_trace(self.position))
+        return _rms(self.position)
 
     @property
     def rotation_rms(self) -> Array:
         """Expected RMS orientation error angle per pose (rad): ``(k,)``; ``inf`` where
         unbounded."""
-        return _sqrt(_trace(self.rotation))
+        return _rms(self.rotation)
 
     @property
     def expected_delta_p(self) -> Array:
         """``sqrt(E[dp^2])`` of Eq. 20 over these poses, model against the true arm (mm);
         ``inf`` when any pose's position error is unbounded."""
-        return _sqrt(jnp.mean(_trace(self.position), axis=-1))
+        return _rms_over_poses(self.position)
 
     @property
     def expected_delta_R(self) -> Array:
         """``sqrt(E[dR^2])`` of Eq. 21 over these poses, model against the true arm (rad);
         ``inf`` when any pose's orientation error is unbounded."""
-        return _sqrt(jnp.mean(_trace(self.rotation), axis=-1))
+        return _rms_over_poses(self.rotation)
 
 
 def _trace(C: Array) -> Array:
     return jnp.trace(C, axis1=-2, axis2=-1)
+
+
+@compiled_when_eager
+def _both_finite(position: Array, rotation: Array) -> Array:
+    """Per pose, whether both ``(..., k, 3, 3)`` covariances have a finite trace: ``(..., k)``."""
+    return jnp.isfinite(_trace(position)) & jnp.isfinite(_trace(rotation))
+
+
+@compiled_when_eager
+def _rms(C: Array) -> Array:
+    """``sqrt(trace)`` per pose of ``C (..., k, 3, 3)``: ``(..., k)``."""
+    return _sqrt(_trace(C))
+
+
+@compiled_when_eager
+def _rms_over_poses(C: Array) -> Array:
+    """``sqrt`` of the mean trace over the poses of ``C (..., k, 3, 3)``: ``(...)``."""
+    return _sqrt(jnp.mean(_trace(C), axis=-1))
 
 
 def _sqrt(x: Array) -> Array:

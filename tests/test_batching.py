@@ -29,8 +29,8 @@ def _newton_sqrt(a, x0, tol):
 
 
 def test_chunked_vmap_equals_vmap():
-    a = jnp.logspace(-3, 12, 11)  # 11 trials, chunks of 4: padded
-    x0 = jnp.ones(11)
+    a = np.logspace(-3, 12, 11)  # 11 trials, chunks of 4: padded
+    x0 = np.ones(11)
     f = chunked_vmap(_newton_sqrt, 4)
     k, x = jax.jit(jax.vmap(f, in_axes=(0, 0, None)))(a, x0, 1e-12)
     k_ref, x_ref = jax.vmap(_newton_sqrt, in_axes=(0, 0, None))(a, x0, 1e-12)
@@ -66,7 +66,7 @@ def test_two_pass_redoes_the_flagged_trials_in_chunks_of_their_own(size):
     """The flagged trials' outputs are the second pass's, the others the first pass's; the
     second pass runs ceil(flagged / chunk) chunks, not one per chunk that holds a flagged trial;
     padding (copies of the first trial, a multiple of 3) is never redone."""
-    x = jnp.arange(size, dtype=jnp.float64) * 1.0  # x[0] = 0 is flagged
+    x = np.arange(size, dtype=np.float64)  # x[0] = 0 is flagged
     chunk = 4
     calls: list[tuple[bool, int]] = []
     out = jax.jit(lambda x: two_pass(_flag_multiples_of_three(calls), chunk, x))(x)
@@ -87,8 +87,8 @@ def test_chunked_vmap_second_pass_under_vmap():
         return jnp.where(second, 10 * x, x), (x % 3 == 0) & ~second
 
     f = chunked_vmap(one, 4, second_pass=True)
-    x = jnp.arange(11, dtype=jnp.float64)
-    expected = np.where(np.asarray(x) % 3 == 0, 10 * np.asarray(x), np.asarray(x))
+    x = np.arange(11, dtype=np.float64)
+    expected = np.where(x % 3 == 0, 10 * x, x)
     np.testing.assert_array_equal(jax.jit(jax.vmap(f))(x), expected)
     np.testing.assert_array_equal(jax.vmap(jax.vmap(f))(x.reshape(1, 11))[0], expected)
     assert f(x[3]) == 30.0 and f(x[4]) == 4.0

@@ -122,9 +122,23 @@ def test_throughput_scaling_mode_generates_in_blocks_and_reports(cdra, capsys, m
     for a, b in zip(whole, blocks, strict=True):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
-    args = ["--scaling", "--solvers", "paper", "--repeats", "1", "--json"]
+    # The sweep asks twice for these very problems (its N row and its m row): handed the ones
+    # generated above (make_problems itself is what the lines above test), so that the run
+    # traces no simulator again.
+    generate = throughput.make_problems
+    generated = {(6, 15, None, 3): whole}
+
+    def once(arm, n_trials, m, noise, seed=0):
+        key = (n_trials, m, noise, seed)
+        if key not in generated:
+            generated[key] = generate(arm, n_trials, m, noise, seed)
+        return generated[key]
+
+    monkeypatch.setattr(throughput, "make_problems", once)
+    args = ["--scaling", "--solvers", "paper", "--repeats", "1", "--json", "--seed", "3"]
     args += ["--scaling-trials", "6", "--scaling-poses", "15", "--scaling-n", "6"]
     throughput.main(args)
+    assert list(generated) == [(6, 15, None, 3)]  # the sweep's problems: the ones above
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     (row_n,), (row_m,) = report["by_trials"], report["by_poses"]
     assert (row_n["N"], row_m["m"]) == (6, 15)

@@ -41,10 +41,27 @@ def poses(cdra):
     return sample_states(jax.random.PRNGKey(3), cdra, 8)
 
 
-def test_covariance_is_pinv_of_whitened_information(cdra, poses):
-    J = _autodiff_jacobian(cdra, poses)
-    G = whitening(tool_pose(cdra, poses), NOISE)
-    Dw = np.asarray(G @ J).reshape(-1, cdra.n_params)
+@pytest.fixture(scope="module")
+def jacobian(cdra, poses):
+    """The autodiff oracle at ``poses`` (numpy), shared by the tests that compare with it."""
+    return np.asarray(_autodiff_jacobian(cdra, poses))
+
+
+@pytest.fixture(scope="module")
+def whitener(cdra, poses):
+    """The per-pose whitening ``G (m, 6, 6)`` of the model tool poses at ``poses`` (numpy; one
+    compiled program rather than its operations one by one)."""
+    return np.asarray(jax.jit(whitening)(tool_pose(cdra, poses), NOISE))
+
+
+@pytest.fixture(scope="module")
+def q_eval(cdra):
+    """Three held-out states at which the tool poses are predicted."""
+    return sample_states(jax.random.PRNGKey(11), cdra, 3)
+
+
+def test_covariance_is_pinv_of_whitened_information(cdra, poses, jacobian, whitener):
+    Dw = (whitener @ jacobian).reshape(-1, cdra.n_params)
     expected = np.linalg.pinv(Dw.T @ Dw, rcond=1e-9, hermitian=True)
     unc = parameter_covariance(cdra, poses, NOISE)
     assert int(unc.rank) == 22
@@ -55,7 +72,7 @@ def test_covariance_is_pinv_of_whitened_information(cdra, poses):
     np.testing.assert_allclose(P @ np.asarray(unc.covariance), unc.covariance, atol=1e-9 * scale)
 
 
-def test_cramer_rao_bound(cdra, poses):
+def test_cramer_rao_bound(cdra, poses, jacobian, whitener):
     names = cdra.param_names
     e = np.eye(cdra.n_params)
     c_ok = e[names.index("base.vx")]
@@ -69,10 +86,8 @@ def test_cramer_rao_bound(cdra, poses):
     assert np.isinf(crb[1])
     assert np.isfinite(crb[2]) and crb[2] == pytest.approx(c_sum @ cov @ c_sum, rel=1e-12)
     # the bound is a lower bound: the unweighted estimator's (sandwich) covariance is larger
-    J = np.asarray(_autodiff_jacobian(cdra, poses))
-    G = np.asarray(whitening(tool_pose(cdra, poses), NOISE))
-    Ginv = np.linalg.inv(G)
-    D = J.reshape(-1, cdra.n_params)
+    Ginv = np.linalg.inv(whitener)
+    D = jacobian.reshape(-1, cdra.n_params)
     Sigma = np.zeros((D.shape[0],) * 2)
     for i in range(len(poses)):
         Sigma[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = Ginv[i] @ Ginv[i].T
@@ -84,9 +99,8 @@ def test_cramer_rao_bound(cdra, poses):
         assert c @ C_unweighted @ c >= (1 - 1e-9) * (c @ cov @ c)
 
 
-def test_pose_covariance_matches_autodiff(cdra, poses):
+def test_pose_covariance_matches_autodiff(cdra, poses, q_eval):
     cov = parameter_covariance(cdra, poses, NOISE).covariance
-    q_eval = sample_states(jax.random.PRNGKey(11), cdra, 3)
     pc = pose_covariance(cdra, q_eval, cov)
     T0 = tool_pose(cdra, q_eval)
 
@@ -142,22 +156,22 @@ def test_bad_input(cdra, poses):
         analyze_uncertainty(cdra, poses, NOISE, estimate=np.zeros(5))
 
 
-def test_prediction_unbounded_where_the_poses_leave_directions_unidentified(cdra, poses):
+def test_prediction_unbounded_where_the_poses_leave_directions_unidentified(cdra, poses, q_eval):
     """A rank-deficient pose set cannot bound the error at states it does not pin down: inf,
     not the pseudo-inverse's finite number. The CDRA's two structural directions (move no
     tool pose) never count: full-rank sets predict the same finite values as before."""
-    q_eval = sample_states(jax.random.PRNGKey(11), cdra, 3)
     same = jnp.repeat(poses[:1], 8, axis=0)  # one state measured 8 times: rank 6 of 24
     pc = predicted_pose_covariance(cdra, same, NOISE, q_eval)
     assert np.isinf(pc.expected_delta_p) and np.isinf(pc.expected_delta_R)
     assert np.all(np.isinf(pc.position_rms)) and np.all(np.isinf(pc.twist))
     assert not np.any(pc.bounded)
     # at the repeated state itself the tool pose is the mean of 8 measurements: whitened
-    # residual (dp / s_p, w / s_r), so the position covariance is s_p^2 / 8 I (exact)
-    own = predicted_pose_covariance(cdra, same, NOISE, poses[:1])
-    assert bool(own.bounded[0])
-    assert float(own.position_rms[0]) == pytest.approx(0.08 * np.sqrt(3 / 8), rel=1e-8)
-    assert float(own.rotation_rms[0]) == pytest.approx(1e-3 * np.sqrt(3 / 8), rel=1e-8)
+    # residual (dp / s_p, w / s_r), so the position covariance is s_p^2 / 8 I (exact); evaluated
+    # there three times (k = 3, the shape of q_eval: the same compiled program)
+    own = predicted_pose_covariance(cdra, same, NOISE, same[:3])
+    assert np.all(np.asarray(own.bounded))
+    np.testing.assert_allclose(own.position_rms, 0.08 * np.sqrt(3 / 8), rtol=1e-8)
+    np.testing.assert_allclose(own.rotation_rms, 1e-3 * np.sqrt(3 / 8), rtol=1e-8)
     # no poses at all: nothing identified, nothing bounded
     assert np.isinf(predicted_pose_covariance(cdra, poses[:0], NOISE, q_eval).expected_delta_p)
     # a full set (rank 22) at the nominal and at a calibrated model: finite, and equal to the
@@ -176,9 +190,8 @@ def test_prediction_unbounded_where_the_poses_leave_directions_unidentified(cdra
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
 
 
-def test_report_marks_unbounded_prediction(cdra, poses):
+def test_report_marks_unbounded_prediction(cdra, poses, q_eval):
     """The report says so, and stays JSON-safe (null, no Infinity)."""
-    q_eval = sample_states(jax.random.PRNGKey(11), cdra, 3)
     same = jnp.repeat(poses[:1], 8, axis=0)
     rep = analyze_uncertainty(cdra, same, NOISE, q_eval=q_eval)
     assert np.isinf(rep.expected_delta_p) and list(rep.unbounded_poses) == [0, 1, 2]
@@ -189,10 +202,9 @@ def test_report_marks_unbounded_prediction(cdra, poses):
     assert uncertainty_dict(cdra, poses, NOISE)["predicted_pose"]["bounded"] is True
 
 
-def test_predicted_accuracy_gradients(cdra, poses):
+def test_predicted_accuracy_gradients(cdra, poses, q_eval):
     """Differentiable despite the two zero singular values: jacfwd = jacrev = central finite
     differences; at an unbounded (inf) prediction the gradient is finite too."""
-    q_eval = sample_states(jax.random.PRNGKey(11), cdra, 3)
 
     def f(q):
         pc = predicted_pose_covariance(cdra, q, NOISE, q_eval)
@@ -255,7 +267,8 @@ def test_cramer_rao_bound_directions(cdra, poses):
     e = np.eye(cdra.n_params)
     one = cramer_rao_bound(cdra, poses, NOISE, e[0])  # a single direction: a scalar
     assert np.shape(one) == ()
-    assert float(one) == pytest.approx(float(cramer_rao_bound(cdra, poses, NOISE, e[:1])[0]))
+    # ... the first of k = 3 rows (the shape of test_cramer_rao_bound: the same program)
+    assert float(one) == pytest.approx(float(cramer_rao_bound(cdra, poses, NOISE, e[:3])[0]))
     unc = parameter_covariance(cdra, poses, NOISE)
     assert float(unc.bound(e[0])) == pytest.approx(float(one))
     for bad in (np.eye(23), np.zeros(()), np.zeros((3, 25))):
