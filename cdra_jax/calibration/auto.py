@@ -60,7 +60,7 @@ from .observations import (
     make_observations,
     marker_table,
     padded,
-    raw_errors,
+    raw_errors_at,
     residual,
 )
 from .registration import Start, initial_guess
@@ -311,8 +311,7 @@ def calibrate_auto(
     rounds = 0
 
     def record(theta, step_norm):
-        frames, xyz = apply_parameters(theta, frames0, xyz0, calibrated)
-        dpos, ang, e = (np.asarray(a) for a in raw_errors(frames, xyz, obs))
+        dpos, ang, e = (np.asarray(a) for a in raw_errors_at(theta, frames0, xyz0, obs, calibrated))
         sq = np.concatenate([np.sum(dpos[pose_mask] ** 2, axis=-1), np.sum(e[seen] ** 2, axis=-1)])
         history.append(
             {
