@@ -56,9 +56,12 @@ UNRELATED = {"notes.txt": b"not an input\n", ".hidden": b"\x00\x01binary"}
 
 
 def fuzz(n: int):
+    """``n`` examples, no deadline, the same examples on every run: a CI run must not depend on
+    chance (an accepted cell value far out of range makes the calibration run to its caps)."""
     return settings(
         max_examples=n,
         deadline=None,
+        derandomize=True,
         suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
     )
 
