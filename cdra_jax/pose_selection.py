@@ -473,7 +473,7 @@ def _reference_weight(
 def _marker_weight(blocks: Array, basis: Array, position_mm: Array, n_pts: int) -> Array:
     """The I-criterion weight of a model measured by ``n_pts`` markers: every marker's position
     rows of the blocks ``(H, 3 n_pts, n)``, averaged over the markers (E[dp^2] per point)."""
-    P = jnp.einsum("hai,ir->har", blocks, basis) * position_mm
+    P = _project(blocks, basis) * position_mm
     return jnp.einsum("har,has->rs", P, P) / (blocks.shape[0] * n_pts)
 
 
@@ -500,7 +500,7 @@ def marker_prediction_rms(
 @compiled_when_eager
 def _marker_rms(A: Array, W: Array, Q: Array) -> Array:
     """``sqrt(tr(Q M^-1))`` with ``M = sum_i B_i^T B_i``, ``B_i = A_i W``."""
-    B = jnp.einsum("nai,ir->nar", A, W)
+    B = _project(A, W)
     M = jnp.einsum("nar,nas->rs", B, B)
     return jnp.sqrt(jnp.trace(jnp.linalg.solve(M, Q)))
 
