@@ -200,11 +200,6 @@ def _inputs(base, d: Path, data: str | bytes | None = None, model: str | bytes |
     return paths
 
 
-def _error(line: str) -> str:
-    assert line.startswith("error: "), line
-    return line
-
-
 # --------------------------------------------------------------------------- the catalogue
 
 
