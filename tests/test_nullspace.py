@@ -22,6 +22,7 @@ from cdra_jax.calibration import (
     calibrate_paper,
     default_rcond,
     min_norm_lstsq,
+    nullspace,
     stacked_system,
 )
 from cdra_jax.calibration.linear import (
@@ -129,6 +130,41 @@ def test_null_basis_is_the_svd_null_space_on_random_arms(seed):
         if k:  # the same subspace as the SVD's
             V0 = Vt[a.n_params - k :].T
             np.testing.assert_allclose(Z @ Z.T, V0 @ V0.T, atol=1e-9)
+
+
+@pytest.mark.parametrize("k", [3, 12])
+def test_orthonormalise_by_qr_is_gram_schmidt(monkeypatch, k):
+    """Above ``UNROLLED_COLUMNS`` the basis is a signed Householder QR: the same columns, in
+    the same order and orientation, as the unrolled Gram-Schmidt's (to rounding)."""
+    A = np.random.default_rng(k).normal(size=(42, k)) * np.logspace(0, 3, k)
+    monkeypatch.setattr(nullspace, "UNROLLED_COLUMNS", 64)
+    gram_schmidt = np.asarray(nullspace.orthonormalise(A))
+    monkeypatch.setattr(nullspace, "UNROLLED_COLUMNS", 0)
+    assert not nullspace.unrolled(k)
+    qr = np.asarray(nullspace.orthonormalise(A))
+    np.testing.assert_allclose(qr.T @ qr, np.eye(k), atol=1e-13)
+    np.testing.assert_allclose(qr, gram_schmidt, atol=1e-12)
+
+
+def test_null_space_products_in_both_forms_agree(monkeypatch):
+    """The null-space step with the products written column by column and as matrix products
+    (``UNROLLED_COLUMNS`` below the nullity): the same step and tests, to rounding."""
+    arm, q = _random_arm_data(3)
+    T = _tool_poses(arm, np.asarray(arm.frames), q)
+    Y, D = stacked_system(arm, q, T, _NOISE)
+    Z = np.asarray(structural_null_space(arm))
+    N, g = np.asarray(D.T @ D), np.asarray(D.T @ Y)
+    k = Z.shape[1]
+    assert k > 0
+    monkeypatch.setattr(nullspace, "UNROLLED_COLUMNS", k)
+    columns = [np.asarray(v) for v in null_space_solve(N, g, Z)]
+    monkeypatch.setattr(nullspace, "UNROLLED_COLUMNS", k - 1)
+    matrices = [np.asarray(v) for v in null_space_solve(N, g, Z)]
+    np.testing.assert_allclose(
+        matrices[0], columns[0], rtol=0, atol=1e-10 * np.abs(columns[0]).max()
+    )
+    np.testing.assert_allclose(matrices[1], columns[1], rtol=1e-8)
+    np.testing.assert_allclose(matrices[2], columns[2], atol=1e-12)
 
 
 def test_generators_per_module_kind():

@@ -22,7 +22,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from .nullspace import orthonormalise
+from .nullspace import orthonormalise, unrolled
 
 
 def default_rcond(dtype) -> float:
@@ -301,7 +301,12 @@ def null_space_solve(
     s = 1.0 / d
     A = N * s[:, None] * s[None, :]
     Zs = orthonormalise(Z * d[:, None]) if k else Z
-    A_aug = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k)) if k else A
+    if not k:
+        A_aug = A
+    elif unrolled(k):
+        A_aug = A + sum(Zs[:, None, c] * Zs[None, :, c] for c in range(k))
+    else:
+        A_aug = A + Zs @ Zs.T
     if damping is not None:
         A_aug = A_aug + jnp.asarray(damping, N.dtype) * s[:, None] * s[None, :]
     L = cholesky_of_symmetric(A_aug)
@@ -317,8 +322,13 @@ def null_space_solve(
         y = solve(jnp.asarray(_probe(n), N.dtype))
         smallest = jnp.linalg.norm(y) / jnp.linalg.norm(solve(y))
         # max |A_s Z_s|, column by column
-        AZ = [jnp.sum(A * Zs[None, :, c], axis=1) for c in range(k)]
-        structural = jnp.max(jnp.abs(jnp.stack(AZ))) if k else jnp.zeros((), N.dtype)
+        if not k:
+            structural = jnp.zeros((), N.dtype)
+        elif unrolled(k):
+            AZ = [jnp.sum(A * Zs[None, :, c], axis=1) for c in range(k)]
+            structural = jnp.max(jnp.abs(jnp.stack(AZ)))
+        else:
+            structural = jnp.max(jnp.abs(A @ Zs))
         return smallest, structural
 
     def skipped():
@@ -333,7 +343,10 @@ def null_space_solve(
 
 def off_null_space(x: Array, Z: Array) -> Array:
     """``x`` less its components along the orthonormal columns of ``Z (n, k)``, ``x - Z Z^T x``
-    (as sums of ``k`` products, which XLA fuses: see :func:`null_space_solve`)."""
+    (as sums of ``k`` products, which XLA fuses, for few columns:
+    :data:`~cdra_jax.calibration.nullspace.UNROLLED_COLUMNS`)."""
+    if not unrolled(Z.shape[-1]):
+        return x - Z @ (Z.T @ x)
     return x - sum(Z[:, c] * jnp.dot(Z[:, c], x) for c in range(Z.shape[-1]))
 
 

@@ -103,12 +103,35 @@ def null_basis(frames: ArrayLike, modules: tuple[int, ...], xi: ArrayLike) -> Ar
     return orthonormalise(null_directions(frames, modules, xi))
 
 
+UNROLLED_COLUMNS = 4
+"""Up to this many null columns ``k``, the products with a null basis are written column by
+column (sums of ``k`` outer or dot products, which XLA fuses into the surrounding element-wise
+code: under ``vmap`` each matrix product or LAPACK call is a call of its own, costly for such
+small operands). Above it (a chain of three or more revolute modules: ``k = 2 R + 4 P``), the
+unrolled code grows as ``k^2`` and its compilation dominates (a 6R arm, ``k = 12``: several
+seconds per solver), so the products are matrix products and the orthonormalisation is a
+Householder QR. The default arm has ``k = 2``."""
+
+
+def unrolled(k: int) -> bool:
+    """Whether the products with ``k`` null columns are written column by column
+    (:data:`UNROLLED_COLUMNS`)."""
+    return k <= UNROLLED_COLUMNS
+
+
 def orthonormalise(A: ArrayLike) -> Array:
     """Orthonormal basis of the span of the ``k`` (few, linearly independent) columns of
-    ``A (n, k)``: Gram-Schmidt, each column orthogonalised twice ("twice is enough", Giraud et
-    al. 2005), as elementwise operations that XLA fuses; for the ``k <= 4 K`` columns of a null
-    basis much cheaper than a LAPACK QR call per trial under ``vmap``."""
+    ``A (n, k)``, the columns orthonormalised in order (column ``c`` of the result lies in the
+    span of the first ``c + 1`` columns of ``A``, with a positive component along column ``c``).
+
+    For ``k <= UNROLLED_COLUMNS``: Gram-Schmidt, each column orthogonalised twice ("twice is
+    enough", Giraud et al. 2005), as elementwise operations that XLA fuses; for the few columns
+    of a null basis much cheaper than a LAPACK QR call per trial under ``vmap``. Above it: a
+    Householder QR, its columns signed as Gram-Schmidt's (the same basis to rounding)."""
     A = jnp.asarray(A)
+    if not unrolled(A.shape[-1]):
+        Q, R = jnp.linalg.qr(A)
+        return Q * jnp.where(jnp.diagonal(R) < 0, -1.0, 1.0).astype(A.dtype)
     cols: list[Array] = []
     for c in range(A.shape[-1]):
         v = A[:, c]

@@ -1,0 +1,98 @@
+"""Compile time of the solvers on an arm with many structural null directions.
+
+The solvers' null-space step (:func:`cdra_jax.calibration.linear.null_space_solve`) and the
+null basis (:func:`cdra_jax.calibration.nullspace.orthonormalise`) write their products with
+the ``k`` null directions column by column for ``k <= UNROLLED_COLUMNS`` (fused element-wise
+code, the fastest form under ``vmap`` for the default arm's ``k = 2``) and as matrix products
+and a Householder QR above it (the column-by-column code grows as ``k^2``). This script times
+the trace + lowering and the compilation of the unbatched paper and LM solvers on the UR5 of
+``examples/ur5`` (six revolute modules, ``k = 12``) in both forms, interleaved in one process
+with the in-memory caches cleared before each, and compares their frames.
+
+    python benchmarks/null_space_compile.py [--poses 15] [--repeats 3] [--suite-options] [--json]
+
+``--suite-options`` compiles with the test suite's XLA options (``tests/conftest.py``: no LLVM
+optimisation passes, one code-generation part per program), set before JAX starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SUITE_XLA_FLAGS = (
+    "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false "
+    "--xla_cpu_parallel_codegen_split_count=1"
+)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--poses", type=int, default=15, help="poses per calibration (default 15)")
+    p.add_argument("--repeats", type=int, default=3, help="interleaved rounds (default 3)")
+    p.add_argument("--suite-options", action="store_true", help="the test suite's XLA options")
+    p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
+    args = p.parse_args(argv)
+    if args.suite_options:
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + SUITE_XLA_FLAGS).strip()
+
+    import jax
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)
+    import cdra_jax as cj
+    from cdra_jax.calibration import nullspace
+    from cdra_jax.compilation import jit
+    from cdra_jax.io import load_model
+    from cdra_jax.simulation import simulate_trial
+
+    arm = load_model(ROOT / "examples" / "ur5" / "ur5_markers.toml")
+    k = nullspace.structural_nullity(arm)
+    q, T, *_ = jax.jit(lambda key: simulate_trial(key, arm, args.poses))(jax.random.PRNGKey(0))
+    solvers = {"paper": cj.calibrate_paper, "lm": cj.calibrate_lm}
+    forms = {"columns": 10**6, "matrices": nullspace.UNROLLED_COLUMNS}
+    times: dict[str, dict[str, list[tuple[float, float]]]] = {
+        s: {f: [] for f in forms} for s in solvers
+    }
+    frames: dict[tuple[str, str], np.ndarray] = {}
+    for _ in range(args.repeats):
+        for form, limit in forms.items():
+            nullspace.UNROLLED_COLUMNS = limit
+            for name, solve in solvers.items():
+                jax.clear_caches()
+                fn = jit(lambda q, T, solve=solve: solve(arm, q, T, throw=False))
+                t0 = time.perf_counter()
+                lowered = fn.jitted.lower(q, T)
+                t1 = time.perf_counter()
+                compiled = lowered.compile()
+                t2 = time.perf_counter()
+                times[name][form].append((t1 - t0, t2 - t1))
+                frames[(name, form)] = np.asarray(compiled(q, T).frames)
+    nullspace.UNROLLED_COLUMNS = forms["matrices"]
+    out: dict = {"arm": "examples/ur5/ur5_markers.toml", "null_directions": k, "poses": args.poses}
+    print(f"{k} structural null directions; median of {args.repeats} rounds (s)")
+    print(f"{'solver':8s} {'form':9s} {'trace+lower':>12s} {'compile':>8s}")
+    for name in solvers:
+        for form in forms:
+            lower = statistics.median(t[0] for t in times[name][form])
+            comp = statistics.median(t[1] for t in times[name][form])
+            print(f"{name:8s} {form:9s} {lower:12.2f} {comp:8.2f}")
+            out[f"{name}_{form}_lower_s"] = round(lower, 3)
+            out[f"{name}_{form}_compile_s"] = round(comp, 3)
+            out[f"{name}_{form}_compile_all_s"] = [round(t[1], 3) for t in times[name][form]]
+        diff = float(np.abs(frames[(name, "columns")] - frames[(name, "matrices")]).max())
+        print(f"{name}: largest frame difference between the forms {diff:.1e}")
+        out[f"{name}_frame_difference"] = diff
+    if args.json:
+        print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
