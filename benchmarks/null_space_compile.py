@@ -5,11 +5,14 @@ null basis (:func:`cdra_jax.calibration.nullspace.orthonormalise`) write their p
 the ``k`` null directions column by column for ``k <= UNROLLED_COLUMNS`` (fused element-wise
 code, the fastest form under ``vmap`` for the default arm's ``k = 2``) and as matrix products
 and a Householder QR above it (the column-by-column code grows as ``k^2``). This script times
-the trace + lowering and the compilation of the unbatched paper and LM solvers on the UR5 of
+the trace + lowering and the compilation of the paper and LM solvers on the UR5 of
 ``examples/ur5`` (six revolute modules, ``k = 12``) in both forms, interleaved in one process
-with the in-memory caches cleared before each, and compares their frames.
+with the in-memory caches cleared before each, and compares their frames. Unbatched by
+default; ``--trials N`` compiles them ``vmap``ped over N simulated trials instead and also
+times the compiled programs (median of ``--calls`` calls each, interleaved, us per trial).
 
-    python benchmarks/null_space_compile.py [--poses 15] [--repeats 3] [--suite-options] [--json]
+    python benchmarks/null_space_compile.py [--poses 15] [--repeats 3] [--suite-options]
+        [--trials N [--calls 5]] [--json]
 
 ``--suite-options`` compiles with the test suite's XLA options (``tests/conftest.py``: no LLVM
 optimisation passes, one code-generation part per program), set before JAX starts.
@@ -37,6 +40,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--poses", type=int, default=15, help="poses per calibration (default 15)")
     p.add_argument("--repeats", type=int, default=3, help="interleaved rounds (default 3)")
     p.add_argument("--suite-options", action="store_true", help="the test suite's XLA options")
+    p.add_argument("--trials", type=int, default=0, help="vmap over this many trials (default 0)")
+    p.add_argument("--calls", type=int, default=5, help="timed calls per program (with --trials)")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
     args = p.parse_args(argv)
     if args.suite_options:
@@ -54,19 +59,32 @@ def main(argv: list[str] | None = None) -> dict:
 
     arm = load_model(ROOT / "examples" / "ur5" / "ur5_markers.toml")
     k = nullspace.structural_nullity(arm)
-    q, T, *_ = jax.jit(lambda key: simulate_trial(key, arm, args.poses))(jax.random.PRNGKey(0))
+
+    def simulate(key):
+        return simulate_trial(key, arm, args.poses)[:2]
+
+    if args.trials:
+        keys = jax.random.split(jax.random.PRNGKey(0), args.trials)
+        q, T = jax.jit(jax.vmap(simulate))(keys)
+    else:
+        q, T = jax.jit(simulate)(jax.random.PRNGKey(0))
     solvers = {"paper": cj.calibrate_paper, "lm": cj.calibrate_lm}
     forms = {"columns": 10**6, "matrices": nullspace.UNROLLED_COLUMNS}
     times: dict[str, dict[str, list[tuple[float, float]]]] = {
         s: {f: [] for f in forms} for s in solvers
     }
     frames: dict[tuple[str, str], np.ndarray] = {}
+    programs: dict[tuple[str, str], object] = {}
     for _ in range(args.repeats):
         for form, limit in forms.items():
             nullspace.UNROLLED_COLUMNS = limit
             for name, solve in solvers.items():
                 jax.clear_caches()
-                fn = jit(lambda q, T, solve=solve: solve(arm, q, T, throw=False))
+
+                def one(q, T, solve=solve):
+                    return solve(arm, q, T, throw=False)
+
+                fn = jit(jax.vmap(one) if args.trials else one)
                 t0 = time.perf_counter()
                 lowered = fn.jitted.lower(q, T)
                 t1 = time.perf_counter()
@@ -74,15 +92,27 @@ def main(argv: list[str] | None = None) -> dict:
                 t2 = time.perf_counter()
                 times[name][form].append((t1 - t0, t2 - t1))
                 frames[(name, form)] = np.asarray(compiled(q, T).frames)
+                programs[(name, form)] = compiled
     nullspace.UNROLLED_COLUMNS = forms["matrices"]
+    run: dict[tuple[str, str], list[float]] = {key: [] for key in programs}
+    for _ in range(args.calls if args.trials else 0):
+        for key, compiled in programs.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(compiled(q, T))  # type: ignore[operator]
+            run[key].append(time.perf_counter() - t0)
     out: dict = {"arm": "examples/ur5/ur5_markers.toml", "null_directions": k, "poses": args.poses}
-    print(f"{k} structural null directions; median of {args.repeats} rounds (s)")
-    print(f"{'solver':8s} {'form':9s} {'trace+lower':>12s} {'compile':>8s}")
+    out["trials"] = args.trials
+    batch = f"vmapped over {args.trials} trials" if args.trials else "unbatched"
+    print(f"{k} structural null directions, {batch}; median of {args.repeats} rounds (s)")
+    print(f"{'solver':8s} {'form':9s} {'trace+lower':>12s} {'compile':>8s} {'us/trial':>9s}")
     for name in solvers:
         for form in forms:
             lower = statistics.median(t[0] for t in times[name][form])
             comp = statistics.median(t[1] for t in times[name][form])
-            print(f"{name:8s} {form:9s} {lower:12.2f} {comp:8.2f}")
+            us = statistics.median(run[(name, form)]) / args.trials * 1e6 if args.trials else None
+            rate = f"{us:9.1f}" if us is not None else f"{'-':>9s}"
+            print(f"{name:8s} {form:9s} {lower:12.2f} {comp:8.2f} {rate}")
+            out[f"{name}_{form}_us_per_trial"] = None if us is None else round(us, 1)
             out[f"{name}_{form}_lower_s"] = round(lower, 3)
             out[f"{name}_{form}_compile_s"] = round(comp, 3)
             out[f"{name}_{form}_compile_all_s"] = [round(t[1], 3) for t in times[name][form]]
