@@ -12,7 +12,10 @@ default; ``--trials N`` compiles them ``vmap``ped over N simulated trials instea
 times the compiled programs (median of ``--calls`` calls each, interleaved, us per trial).
 
     python benchmarks/null_space_compile.py [--poses 15] [--repeats 3] [--suite-options]
-        [--trials N [--calls 5]] [--json]
+        [--trials N [--calls 5]] [--revolute R] [--json]
+
+``--revolute R`` replaces the UR5 by a chain of ``R`` revolute modules and a spherical one, with
+random axes and fixed frames (seeded; ``k = 2 R``), to place the crossover of the two forms.
 
 ``--suite-options`` compiles with the test suite's XLA options (``tests/conftest.py``: no LLVM
 optimisation passes, one code-generation part per program), set before JAX starts.
@@ -42,6 +45,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--suite-options", action="store_true", help="the test suite's XLA options")
     p.add_argument("--trials", type=int, default=0, help="vmap over this many trials (default 0)")
     p.add_argument("--calls", type=int, default=5, help="timed calls per program (with --trials)")
+    p.add_argument("--revolute", type=int, default=0, help="a random chain of R revolute modules")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
     args = p.parse_args(argv)
     if args.suite_options:
@@ -57,7 +61,12 @@ def main(argv: list[str] | None = None) -> dict:
     from cdra_jax.io import load_model
     from cdra_jax.simulation import simulate_trial
 
-    arm = load_model(ROOT / "examples" / "ur5" / "ur5_markers.toml")
+    if args.revolute:
+        arm = _random_chain(args.revolute)
+        label = f"{args.revolute} revolute modules and a spherical one (random, seed 5)"
+    else:
+        arm = load_model(ROOT / "examples" / "ur5" / "ur5_markers.toml")
+        label = "examples/ur5/ur5_markers.toml"
     k = nullspace.structural_nullity(arm)
 
     def simulate(key):
@@ -69,7 +78,8 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         q, T = jax.jit(simulate)(jax.random.PRNGKey(0))
     solvers = {"paper": cj.calibrate_paper, "lm": cj.calibrate_lm}
-    forms = {"columns": 10**6, "matrices": nullspace.UNROLLED_COLUMNS}
+    forms = {"columns": 10**6, "matrices": 0}
+    default_limit = nullspace.UNROLLED_COLUMNS
     times: dict[str, dict[str, list[tuple[float, float]]]] = {
         s: {f: [] for f in forms} for s in solvers
     }
@@ -93,14 +103,14 @@ def main(argv: list[str] | None = None) -> dict:
                 times[name][form].append((t1 - t0, t2 - t1))
                 frames[(name, form)] = np.asarray(compiled(q, T).frames)
                 programs[(name, form)] = compiled
-    nullspace.UNROLLED_COLUMNS = forms["matrices"]
+    nullspace.UNROLLED_COLUMNS = default_limit
     run: dict[tuple[str, str], list[float]] = {key: [] for key in programs}
     for _ in range(args.calls if args.trials else 0):
         for key, compiled in programs.items():
             t0 = time.perf_counter()
             jax.block_until_ready(compiled(q, T))  # type: ignore[operator]
             run[key].append(time.perf_counter() - t0)
-    out: dict = {"arm": "examples/ur5/ur5_markers.toml", "null_directions": k, "poses": args.poses}
+    out: dict = {"arm": label, "null_directions": k, "poses": args.poses}
     out["trials"] = args.trials
     batch = f"vmapped over {args.trials} trials" if args.trials else "unbatched"
     print(f"{k} structural null directions, {batch}; median of {args.repeats} rounds (s)")
@@ -122,6 +132,29 @@ def main(argv: list[str] | None = None) -> dict:
     if args.json:
         print(json.dumps(out))
     return out
+
+
+def _random_chain(revolute: int):
+    """``revolute`` revolute modules (random axes) and a spherical one between random fixed
+    frames (rotations from random rotation vectors, translations ~200 mm), seed 5."""
+    import jax.numpy as jnp
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from cdra_jax import arm as arm_lib
+
+    rng = np.random.default_rng(5)
+    modules = [arm_lib.revolute(f"r{i}", rng.normal(size=3)) for i in range(revolute)]
+    modules.append(arm_lib.spherical("s"))
+    k1 = len(modules) + 1
+    frames = np.broadcast_to(np.eye(4), (k1, 4, 4)).copy()
+    frames[:, :3, :3] = Rotation.from_rotvec(rng.normal(size=(k1, 3))).as_matrix()
+    frames[:, :3, 3] = rng.normal(size=(k1, 3)) * 200.0
+    return arm_lib.Arm(
+        frames=jnp.asarray(frames),
+        modules=tuple(modules),
+        frame_names=tuple(f"f{j}" for j in range(k1)),
+    )
 
 
 if __name__ == "__main__":

@@ -103,14 +103,16 @@ def null_basis(frames: ArrayLike, modules: tuple[int, ...], xi: ArrayLike) -> Ar
     return orthonormalise(null_directions(frames, modules, xi))
 
 
-UNROLLED_COLUMNS = 4
+UNROLLED_COLUMNS = 6
 """Up to this many null columns ``k``, the products with a null basis are written column by
 column (sums of ``k`` outer or dot products, which XLA fuses into the surrounding element-wise
 code: under ``vmap`` each matrix product or LAPACK call is a call of its own, costly for such
-small operands). Above it (a chain of three or more revolute modules: ``k = 2 R + 4 P``), the
-unrolled code grows as ``k^2`` and its compilation dominates (a 6R arm, ``k = 12``: several
-seconds per solver), so the products are matrix products and the orthonormalisation is a
-Householder QR. The default arm has ``k = 2``."""
+small operands). Above it (four or more revolute modules: ``k = 2 R + 4 P``), the unrolled
+code, which grows as ``k^2``, costs more than it saves, so the products are matrix products
+and the orthonormalisation is a Householder QR. Vmapped paper solves ran 12-14 % faster column
+by column at ``k = 4`` and ``k = 6``, and 15 % slower at ``k = 8``; on the UR5 (``k = 12``) the
+matrix form compiled 3.8x faster and ran 1.5x faster (``benchmarks/null_space_compile.py``,
+``benchmarks/README.md``). The default arm has ``k = 2``."""
 
 
 def unrolled(k: int) -> bool:
