@@ -275,7 +275,9 @@ def null_space_solve(
 
     The products with the ``k`` (few) columns of ``Z`` are written as sums of ``k`` outer
     products or dot products, which XLA fuses, rather than as matrix products (each a call of
-    its own, costly for such small operands under ``vmap``).
+    its own, costly for such small operands under ``vmap``); above
+    :data:`~cdra_jax.calibration.nullspace.UNROLLED_COLUMNS` columns, where that code's growth
+    as ``k^2`` costs more than it saves, as matrix products.
 
     ``damping`` ``M (n, n)`` (positive semi-definite) solves ``(N + M) x = g`` instead, the
     component along ``Z`` projected out as above (the damped Levenberg-Marquardt step of
@@ -321,7 +323,7 @@ def null_space_solve(
     def tests():
         y = solve(jnp.asarray(_probe(n), N.dtype))
         smallest = jnp.linalg.norm(y) / jnp.linalg.norm(solve(y))
-        # max |A_s Z_s|, column by column
+        # max |A_s Z_s|
         if not k:
             structural = jnp.zeros((), N.dtype)
         elif unrolled(k):
