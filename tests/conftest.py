@@ -152,20 +152,25 @@ def _free_compiled_programs_when_memory_is_high(request):
 @pytest.fixture(scope="session", autouse=True)
 def _coverage_paused_inside_jax():
     """Under ``--cov``, coverage's tracer is paused while JAX's own code runs: inside every
-    primitive's ``bind`` (tracing, batching and differentiating one operation), while a traced
-    program is lowered to MLIR and while it is compiled (or loaded from the on-disk cache). It
-    runs again wherever JAX calls a function back (``WrappedFun.call_wrapped``: the function
-    being traced, a ``custom_jvp`` or ``custom_vjp`` rule) and in a ``custom_vmap`` rule
-    (``custom_batching.call_rule``), the only ways the package's code runs from inside JAX.
+    primitive's ``bind`` (tracing, batching and differentiating one operation), while ``jit``
+    prepares and dispatches a call (``pjit._infer_params``, ``pjit._run_python_pjit``), while
+    a traced program is lowered to MLIR and while it is compiled (or loaded from the on-disk
+    cache); and while matplotlib lays out and renders a figure (``Figure.subplots``,
+    ``Figure.savefig``: the package passes it no callback). It runs again wherever JAX calls a
+    function back: the function being traced (``partial_eval.trace_to_jaxpr``,
+    ``WrappedFun.call_wrapped``), a ``custom_jvp`` or ``custom_vjp`` rule (``call_wrapped``),
+    a ``custom_vmap`` rule (``custom_batching.call_rule``): the only ways the package's code
+    runs from inside those.
 
     On Python 3.11 an installed trace function makes the interpreter run every instruction of
     every frame unspecialised, whether the frame's file is measured or not (pure Python outside
     the package: 1.5-2x slower), and JAX's tracing is mostly JAX's own Python. The measured lines
     are the same: the same statements missed, file by file, over the whole suite. Tracing the
-    vmapped paper and LM solvers under coverage took 1.27 s of CPU instead of 1.75 s (medians of
-    5, interleaved); two test modules (calibration, markers) 46.2-47.9 s instead of 51.2-52.4 s.
-    Nothing here if coverage is not running or its internals differ: the suite then only runs
-    slower.
+    vmapped paper and LM solvers under coverage took 1.35 s of CPU instead of 1.86 s (``bind``
+    alone; medians of 4, alternated; 1.03-1.14 s without coverage); in a CPU profile of two test
+    modules (sweeps, workflows) the pauses at ``jit``'s call and matplotlib's took JAX's other
+    code from 5.7 to 4.6 s and matplotlib's from 2.0 to 1.3 s. Nothing here if coverage is not
+    running or its internals differ: the suite then only runs slower.
     """
     try:
         import coverage
@@ -177,9 +182,10 @@ def _coverage_paused_inside_jax():
     if not tracers or not all(hasattr(t, "stop") and hasattr(t, "start") for t in tracers):
         yield
         return
-    from jax._src import compiler, core, custom_batching
+    from jax._src import compiler, core, custom_batching, pjit
     from jax._src import linear_util as lu
     from jax._src.interpreters import mlir
+    from jax._src.interpreters import partial_eval as pe
 
     paused = [False]
     """Whether this fixture has stopped the tracer (a ``bind`` inside a ``bind`` leaves it so)."""
@@ -224,9 +230,18 @@ def _coverage_paused_inside_jax():
         (core.Primitive, "bind", untraced),
         (mlir, "lower_jaxpr_to_module", untraced),
         (compiler, "compile_or_get_cached", untraced),
+        (pjit, "_infer_params", untraced),
+        (pjit, "_run_python_pjit", untraced),
         (lu.WrappedFun, "call_wrapped", traced),
+        (pe, "trace_to_jaxpr", traced),
         (custom_batching, "call_rule", traced),
     ]
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        pass
+    else:
+        patched += [(Figure, "savefig", untraced), (Figure, "subplots", untraced)]
     if not all(hasattr(owner, name) for owner, name, _ in patched):
         yield
         return
