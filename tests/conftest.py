@@ -165,7 +165,9 @@ def _coverage_paused_inside_jax():
     On Python 3.11 an installed trace function makes the interpreter run every instruction of
     every frame unspecialised, whether the frame's file is measured or not (pure Python outside
     the package: 1.5-2x slower), and JAX's tracing is mostly JAX's own Python. The measured lines
-    are the same: the same statements missed, file by file, over the whole suite. Tracing the
+    are the same: on groups of modules, the same lines missed with and without the pauses; over
+    the whole suite, the same counts file by file up to the suite's own variation between runs
+    of the same code (a line or two: some tests do not reach the same lines every run). Tracing the
     vmapped paper and LM solvers under coverage took 1.35 s of CPU instead of 1.86 s (``bind``
     alone; medians of 4, alternated; 1.03-1.14 s without coverage); in a CPU profile of two test
     modules (sweeps, workflows) the pauses at ``jit``'s call and matplotlib's took JAX's other
