@@ -1,6 +1,7 @@
 import os
 import shutil
 import tempfile
+import threading
 
 # The suite compiles hundreds of small XLA programs that then run for milliseconds, so compile
 # time dominates it: build them without LLVM's optimisation passes (the whole suite without
@@ -181,9 +182,14 @@ def _coverage_paused_inside_jax():
         return
     cov = coverage.Coverage.current()
     tracers = getattr(getattr(cov, "_collector", None), "tracers", None)
-    if not tracers or not all(hasattr(t, "stop") and hasattr(t, "start") for t in tracers):
+    # One tracer, the main thread's (a thread started later gets a tracer of its own, which
+    # stop() and start() on this thread would not reach): the pauses apply on the main thread
+    # only, and other threads run traced throughout.
+    if not tracers or len(tracers) != 1 or not hasattr(tracers[0], "stop"):
         yield
         return
+    tracer = tracers[0]
+    main_thread = threading.main_thread().ident
     from jax._src import compiler, core, custom_batching, pjit
     from jax._src import linear_util as lu
     from jax._src.interpreters import mlir
@@ -192,38 +198,30 @@ def _coverage_paused_inside_jax():
     paused = [False]
     """Whether this fixture has stopped the tracer (a ``bind`` inside a ``bind`` leaves it so)."""
 
-    def stop():
-        for tracer in tracers:
-            tracer.stop()
-
-    def start():
-        for tracer in tracers:
-            tracer.start()
-
     def untraced(fn):
         def call(*args, **kwargs):
-            if paused[0]:
+            if paused[0] or threading.get_ident() != main_thread:
                 return fn(*args, **kwargs)
             paused[0] = True
-            stop()
+            tracer.stop()
             try:
                 return fn(*args, **kwargs)
             finally:
-                start()
+                tracer.start()
                 paused[0] = False
 
         return call
 
     def traced(fn):
         def call(*args, **kwargs):
-            if not paused[0]:
+            if not paused[0] or threading.get_ident() != main_thread:
                 return fn(*args, **kwargs)
             paused[0] = False
-            start()
+            tracer.start()
             try:
                 return fn(*args, **kwargs)
             finally:
-                stop()
+                tracer.stop()
                 paused[0] = True
 
         return call
