@@ -198,33 +198,29 @@ def _coverage_paused_inside_jax():
     paused = [False]
     """Whether this fixture has stopped the tracer (a ``bind`` inside a ``bind`` leaves it so)."""
 
-    def untraced(fn):
+    def switched(fn, pause: bool):
+        """``fn`` with the tracer stopped (``pause``) or running again while it runs, unless
+        it already is, or the call is on another thread."""
+        stop, start = (tracer.stop, tracer.start) if pause else (tracer.start, tracer.stop)
+
         def call(*args, **kwargs):
-            if paused[0] or threading.get_ident() != main_thread:
+            if paused[0] == pause or threading.get_ident() != main_thread:
                 return fn(*args, **kwargs)
-            paused[0] = True
-            tracer.stop()
+            paused[0] = pause
+            stop()
             try:
                 return fn(*args, **kwargs)
             finally:
-                tracer.start()
-                paused[0] = False
+                start()
+                paused[0] = not pause
 
         return call
+
+    def untraced(fn):
+        return switched(fn, pause=True)
 
     def traced(fn):
-        def call(*args, **kwargs):
-            if not paused[0] or threading.get_ident() != main_thread:
-                return fn(*args, **kwargs)
-            paused[0] = False
-            tracer.start()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                tracer.stop()
-                paused[0] = True
-
-        return call
+        return switched(fn, pause=False)
 
     patched = [
         (core.Primitive, "bind", untraced),
