@@ -77,6 +77,17 @@ jax.config.update("jax_enable_x64", True)
 gc.set_threshold(*GC_THRESHOLDS)
 
 
+def pytest_collection_finish(session):
+    """Move every object alive once the tests are collected (the imported modules: JAX, numpy,
+    scipy, matplotlib, the package, the test modules; about 200,000 objects) to the cycle
+    collector's permanent generation (``gc.freeze``), so that the full collections of the run
+    (the explicit one after each drop of the compiled programs, pytest's at the end) no longer
+    scan them. They live to the end of the process anyway; reference counting still frees what
+    is not in a cycle. On three modules (calibration, robust, workflows; one process) the
+    collections took 1.61-1.71 s in all against 2.36-2.39 s (``gc.callbacks``, alternated)."""
+    gc.freeze()
+
+
 _RSS_AFTER_LAST_DROP = [0]
 """This worker's resident memory right after it last dropped its programs (bytes)."""
 
