@@ -1,7 +1,6 @@
 import os
 import shutil
 import tempfile
-import threading
 
 # The suite compiles hundreds of small XLA programs that then run for milliseconds, so compile
 # time dominates it: build them without LLVM's optimisation passes (the whole suite without
@@ -24,7 +23,7 @@ import threading
 # alternated). Neither changes a result: the frames and iteration counts of the paper, weighted
 # and LM solvers, float64 and float32, over 64 trials were bitwise equal without them. (Leaving
 # out loop-invariant code motion as well moved float32 rounding enough to change where a float32
-# LM solve stops.) Whole suite under coverage, one run each: 675 s of CPU without the verifier,
+# LM solve stops.) Whole suite under coverage.py's tracer, one run each: 675 s of CPU without the verifier,
 # 711 s with it. XLA ignores a pass name it does not know: the names are those of the passes'
 # `name()`.
 _FLAGS = (
@@ -141,8 +140,7 @@ def _free_compiled_programs_after_each_module():
 
     Without it, one xdist worker keeps every executable that the modules it ran have compiled
     (peak RSS ~6 GB for the whole suite). Dropping them only when memory is high keeps the
-    programs that the next modules share (tracing them again is Python work, which coverage
-    makes slower still); the on-disk cache above makes the recompilation cheap.
+    programs that the next modules share (tracing them again is Python work); the on-disk cache above makes the recompilation cheap.
     """
     yield
     _drop_compiled_programs_above(_RSS_LIMIT_BYTES)
@@ -163,107 +161,6 @@ def _free_compiled_programs_when_memory_is_high(request):
     yield
     if request.node.get_closest_marker("keep_programs") is None:
         _drop_compiled_programs_above(_RSS_TEST_LIMIT_BYTES, _RSS_REGROWTH_BYTES)
-
-
-@pytest.fixture(scope="session", autouse=True)
-def _coverage_paused_inside_jax():
-    """Under ``--cov``, coverage's tracer is paused while JAX's own code runs: inside every
-    primitive's ``bind`` (tracing, batching and differentiating one operation), while ``jit``
-    prepares and dispatches a call (``pjit._infer_params``, ``pjit._run_python_pjit``), while
-    a traced program is lowered to MLIR and while it is compiled (or loaded from the on-disk
-    cache); and while matplotlib lays out and renders a figure (``Figure.subplots``,
-    ``Figure.savefig``: the package passes it no callback). It runs again wherever JAX calls a
-    function back: the function being traced (``partial_eval.trace_to_jaxpr``,
-    ``WrappedFun.call_wrapped``), a ``custom_jvp`` or ``custom_vjp`` rule (``call_wrapped``),
-    a ``custom_vmap`` rule (``custom_batching.call_rule``): the only ways the package's code
-    runs from inside those.
-
-    On Python 3.11 an installed trace function makes the interpreter run every instruction of
-    every frame unspecialised, whether the frame's file is measured or not (pure Python outside
-    the package: 1.5-2x slower), and JAX's tracing is mostly JAX's own Python. The measured lines
-    are the same: on groups of modules, the same lines missed with and without the pauses; over
-    the whole suite, the same counts file by file up to the suite's own variation between runs
-    of the same code (a line or two: some tests do not reach the same lines every run). Tracing the
-    vmapped paper and LM solvers under coverage took 1.35 s of CPU instead of 1.86 s (``bind``
-    alone; medians of 4, alternated; 1.03-1.14 s without coverage); in a CPU profile of two test
-    modules (sweeps, workflows) the pauses at ``jit``'s call and matplotlib's took JAX's other
-    code from 5.7 to 4.6 s and matplotlib's from 2.0 to 1.3 s. Nothing here if coverage is not
-    running or its internals differ: the suite then only runs slower.
-    """
-    try:
-        import coverage
-    except ImportError:
-        yield
-        return
-    cov = coverage.Coverage.current()
-    tracers = getattr(getattr(cov, "_collector", None), "tracers", None)
-    # One tracer, the main thread's (a thread started later gets a tracer of its own, which
-    # stop() and start() on this thread would not reach): the pauses apply on the main thread
-    # only, and other threads run traced throughout.
-    if not tracers or len(tracers) != 1 or not hasattr(tracers[0], "stop"):
-        yield
-        return
-    tracer = tracers[0]
-    main_thread = threading.main_thread().ident
-    from jax._src import compiler, core, custom_batching, pjit
-    from jax._src import linear_util as lu
-    from jax._src.interpreters import mlir
-    from jax._src.interpreters import partial_eval as pe
-
-    paused = [False]
-    """Whether this fixture has stopped the tracer (a ``bind`` inside a ``bind`` leaves it so)."""
-
-    def switched(fn, pause: bool):
-        """``fn`` with the tracer stopped (``pause``) or running again while it runs, unless
-        it already is, or the call is on another thread."""
-        stop, start = (tracer.stop, tracer.start) if pause else (tracer.start, tracer.stop)
-
-        def call(*args, **kwargs):
-            if paused[0] == pause or threading.get_ident() != main_thread:
-                return fn(*args, **kwargs)
-            paused[0] = pause
-            stop()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                start()
-                paused[0] = not pause
-
-        return call
-
-    def untraced(fn):
-        return switched(fn, pause=True)
-
-    def traced(fn):
-        return switched(fn, pause=False)
-
-    patched = [
-        (core.Primitive, "bind", untraced),
-        (mlir, "lower_jaxpr_to_module", untraced),
-        (compiler, "compile_or_get_cached", untraced),
-        (pjit, "_infer_params", untraced),
-        (pjit, "_run_python_pjit", untraced),
-        (lu.WrappedFun, "call_wrapped", traced),
-        (pe, "trace_to_jaxpr", traced),
-        (custom_batching, "call_rule", traced),
-    ]
-    try:
-        from matplotlib.figure import Figure
-    except ImportError:
-        pass
-    else:
-        patched += [(Figure, "savefig", untraced), (Figure, "subplots", untraced)]
-    if not all(hasattr(owner, name) for owner, name, _ in patched):
-        yield
-        return
-    originals = [getattr(owner, name) for owner, name, _ in patched]
-    for (owner, name, wrap), fn in zip(patched, originals, strict=True):
-        setattr(owner, name, wrap(fn))
-    try:
-        yield
-    finally:
-        for (owner, name, _), fn in zip(patched, originals, strict=True):
-            setattr(owner, name, fn)
 
 
 @pytest.fixture(scope="session")
