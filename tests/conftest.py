@@ -23,8 +23,8 @@ import tempfile
 # alternated). Neither changes a result: the frames and iteration counts of the paper, weighted
 # and LM solvers, float64 and float32, over 64 trials were bitwise equal without them. (Leaving
 # out loop-invariant code motion as well moved float32 rounding enough to change where a float32
-# LM solve stops.) Whole suite under coverage.py's tracer, one run each: 675 s of CPU without the verifier,
-# 711 s with it. XLA ignores a pass name it does not know: the names are those of the passes'
+# LM solve stops.) Whole suite under coverage.py's tracer, one run each: 675 s of CPU without
+# the verifier, 711 s with it. XLA ignores a pass name it does not know: the names are those of the passes'
 # `name()`.
 _FLAGS = (
     "--xla_backend_optimization_level=0",
@@ -140,7 +140,8 @@ def _free_compiled_programs_after_each_module():
 
     Without it, one xdist worker keeps every executable that the modules it ran have compiled
     (peak RSS ~6 GB for the whole suite). Dropping them only when memory is high keeps the
-    programs that the next modules share (tracing them again is Python work); the on-disk cache above makes the recompilation cheap.
+    programs that the next modules share (tracing them again is Python work); the on-disk cache
+    above makes the recompilation cheap.
     """
     yield
     _drop_compiled_programs_above(_RSS_LIMIT_BYTES)
