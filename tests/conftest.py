@@ -24,8 +24,8 @@ import tempfile
 # and LM solvers, float64 and float32, over 64 trials were bitwise equal without them. (Leaving
 # out loop-invariant code motion as well moved float32 rounding enough to change where a float32
 # LM solve stops.) Whole suite under coverage.py's tracer, one run each: 675 s of CPU without
-# the verifier, 711 s with it. XLA ignores a pass name it does not know: the names are those of the passes'
-# `name()`.
+# the verifier, 711 s with it. XLA ignores a pass name it does not know: the names are those of
+# the passes' `name()`.
 _FLAGS = (
     "--xla_backend_optimization_level=0",
     "--xla_cpu_use_fusion_emitters=false",
