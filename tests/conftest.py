@@ -235,10 +235,10 @@ def ur5():
 # the programs they compile (the same solvers at the same shapes): with the tests dealt out one by
 # one, a module's tests were spread over both workers, each tracing and compiling their programs,
 # and the suite took 15 % longer (1,000 against 870 worker-seconds). The modules are handed out
-# in this order, the longest (by their measured time, 20-110 s) first, so that with `-n 2` the
-# two workers end on short modules instead of one finishing a long one alone
-# (`--no-loadscope-reorder`: xdist's own order is by the number of tests). The others follow in
-# the order of collection.
+# longest first (every module of 5 s or more, by its measured time in a whole run), so that
+# with `-n 2` the two workers end on short modules instead of one finishing a long one alone
+# (`--no-loadscope-reorder`: xdist's own order is by the number of tests). The others, of a few
+# seconds each, follow in the order of collection.
 _LONG_FIRST = (
     "tests/test_diagnosis.py",
     "tests/test_notebooks.py",
@@ -256,6 +256,19 @@ _LONG_FIRST = (
     "tests/test_benchmark_baselines.py",
     "tests/test_reproduction.py",
     "tests/test_sweep_processes.py",
+    "tests/test_fuzz.py",
+    "tests/test_cli_robust.py",
+    "tests/test_cli.py",
+    "tests/test_batching.py",
+    "tests/test_hostile_input.py",
+    "tests/test_physics.py",
+    "tests/test_compilation.py",
+    "tests/test_modules_tension.py",
+    "tests/test_uncertainty.py",
+    "tests/test_pose_selection.py",
+    "tests/test_concealed_generator.py",
+    "tests/test_modules_cables.py",
+    "tests/test_optimistix_lm.py",
 )
 
 
