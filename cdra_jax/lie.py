@@ -88,6 +88,33 @@ def vee(X: ArrayLike) -> Array:
     return jnp.concatenate([X[..., :3, 3], vee3(X[..., :3, :3])], axis=-1)
 
 
+def _hat3_squared(w: Array) -> Array:
+    """``hat(w)^2 = w w^T - |w|^2 I`` for ``w (..., 3)``: ``(..., 3, 3)``.
+
+    The small products of this module are written out element-wise: under ``vmap`` XLA:CPU
+    compiles every matrix product into a kernel of its own (compile time) and calls it per
+    batch, where the element-wise form fuses with its neighbours.
+    """
+    eye = jnp.eye(3, dtype=w.dtype)
+    x = jnp.sum(w * w, axis=-1)
+    return w[..., :, None] * w[..., None, :] - x[..., None, None] * eye
+
+
+def _matmul3(A: Array, B: Array) -> Array:
+    """``A B`` for ``A (..., 3, 3)`` and ``B (..., 3, k)``, element-wise (see
+    :func:`_hat3_squared`)."""
+    out = A[..., :, 0, None] * B[..., None, 0, :]
+    for j in (1, 2):
+        out = out + A[..., :, j, None] * B[..., None, j, :]
+    return out
+
+
+def _matvec3(A: Array, v: Array) -> Array:
+    """``A v`` for ``A (..., 3, 3)`` and ``v (..., 3)``, element-wise (as
+    :func:`_hat3_squared`)."""
+    return _matmul3(A, v[..., :, None])[..., 0]
+
+
 def _angle_coefficients(theta_sq: Array) -> tuple[Array, Array, Array]:
     """``sin(t)/t``, ``(1-cos t)/t^2`` and ``(t - sin t)/t^3`` of ``t = sqrt(theta_sq)``.
 
@@ -113,7 +140,7 @@ def so3_exp(w: ArrayLike) -> Array:
     w = _shaped(w, (3,), "so3_exp", "w")
     a, b, _ = _angle_coefficients(jnp.sum(w * w, axis=-1))
     W = hat3(w)
-    W2 = W @ W
+    W2 = _hat3_squared(w)
     eye = jnp.eye(3, dtype=W.dtype)
     return eye + a[..., None, None] * W + b[..., None, None] * W2
 
@@ -125,7 +152,7 @@ def so3_left_jacobian(w: ArrayLike) -> Array:
     _, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
     W = hat3(w)
     eye = jnp.eye(3, dtype=W.dtype)
-    return eye + b[..., None, None] * W + c[..., None, None] * (W @ W)
+    return eye + b[..., None, None] * W + c[..., None, None] * _hat3_squared(w)
 
 
 @_compiled_when_eager
@@ -213,7 +240,7 @@ def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
     c = jnp.where(small, taylor, exact)
     W = hat3(w)
     eye = jnp.eye(3, dtype=W.dtype)
-    return eye - 0.5 * W + c[..., None, None] * (W @ W)
+    return eye - 0.5 * W + c[..., None, None] * _hat3_squared(w)
 
 
 @_compiled_when_eager
@@ -245,11 +272,11 @@ def se3_exp(xi: ArrayLike) -> Array:
     v, w = xi[..., :3], xi[..., 3:]
     a, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
     W = hat3(w)
-    W2 = W @ W
+    W2 = _hat3_squared(w)
     eye = jnp.eye(3, dtype=W.dtype)
     R = eye + a[..., None, None] * W + b[..., None, None] * W2
     A = eye + b[..., None, None] * W + c[..., None, None] * W2
-    return make_pose(R, jnp.einsum("...ij,...j->...i", A, v))
+    return make_pose(R, _matvec3(A, v))
 
 
 @_compiled_when_eager
@@ -257,7 +284,7 @@ def se3_log(T: ArrayLike) -> Array:
     """Twist ``(v, w)`` of a pose (Eq. 27, made robust near pi): ``(..., 4, 4) -> (..., 6)``."""
     T = _shaped(T, (4, 4), "se3_log", "T")
     w = so3_log(T[..., :3, :3])
-    v = jnp.einsum("...ij,...j->...i", so3_left_jacobian_inverse(w), T[..., :3, 3])
+    v = _matvec3(so3_left_jacobian_inverse(w), T[..., :3, 3])
     return jnp.concatenate([v, w], axis=-1)
 
 
@@ -266,7 +293,7 @@ def inverse(T: ArrayLike) -> Array:
     """Inverse pose ``[[R^T, -R^T p], [0, 1]]``: ``(..., 4, 4) -> (..., 4, 4)``."""
     T = _shaped(T, (4, 4), "inverse", "T")
     Rt = jnp.swapaxes(T[..., :3, :3], -1, -2)
-    return make_pose(Rt, -jnp.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+    return make_pose(Rt, -_matvec3(Rt, T[..., :3, 3]))
 
 
 @_compiled_when_eager
@@ -285,7 +312,7 @@ def adjoint(T: ArrayLike) -> Array:
     """Adjoint ``[[R, hat(p) R], [0, R]]`` of a pose (Eq. 25): ``(..., 4, 4) -> (..., 6, 6)``."""
     T = _shaped(T, (4, 4), "adjoint", "T")
     R, p = T[..., :3, :3], T[..., :3, 3]
-    top = jnp.concatenate([R, hat3(p) @ R], axis=-1)
+    top = jnp.concatenate([R, _matmul3(hat3(p), R)], axis=-1)
     bottom = jnp.concatenate([jnp.zeros_like(R), R], axis=-1)
     return jnp.concatenate([top, bottom], axis=-2)
 
