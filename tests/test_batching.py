@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from _devices import run_on_two_cpu_devices
 
-from cdra_jax.calibration.batching import chunked_vmap, two_pass
+from cdra_jax.calibration.batching import chunked_vmap, multi_pass, set_entry, two_pass
 from cdra_jax.compilation import batched_like
 
 
@@ -92,6 +92,52 @@ def test_chunked_vmap_second_pass_under_vmap():
     np.testing.assert_array_equal(jax.jit(jax.vmap(f))(x), expected)
     np.testing.assert_array_equal(jax.vmap(jax.vmap(f))(x.reshape(1, 11))[0], expected)
     assert f(x[3]) == 30.0 and f(x[4]) == 4.0
+
+
+def test_multi_pass_keeps_every_output_dtype_and_shape():
+    """Outputs of several dtypes and shapes (held in one buffer per dtype while the passes
+    run) come back unchanged, each trial's from the last pass that evaluated it; trials of
+    mode 2 skip mode 1, and padding is never handed on."""
+
+    def batched(mode, x):
+        out = {
+            "value": x[:, None, None] * jnp.arange(6.0).reshape(2, 3) + mode,
+            "flag": (x > 4) ^ (mode == 1),
+            "count": jnp.broadcast_to(mode, x.shape).astype(jnp.int32) * 7,
+            "big": (x * 1e6).astype(jnp.int64) + jnp.int64(2**40),
+            "mode": jnp.broadcast_to(mode, x.shape).astype(jnp.float32),
+        }
+        want = jnp.where(mode == 0, (x.astype(jnp.int32) % 3), 0)
+        return out, want.astype(jnp.int32)
+
+    x = jnp.arange(11, dtype=jnp.float64)
+    out = jax.jit(lambda x: multi_pass(batched, 4, 3, x))(x)
+    mode = np.asarray(x).astype(int) % 3  # the last mode that evaluated each trial
+    xs = np.asarray(x)
+    np.testing.assert_array_equal(
+        out["value"], xs[:, None, None] * np.arange(6.0).reshape(2, 3) + mode[:, None, None]
+    )
+    np.testing.assert_array_equal(out["flag"], (xs > 4) ^ (mode == 1))
+    np.testing.assert_array_equal(out["count"], 7 * mode)
+    np.testing.assert_array_equal(out["big"], (xs * 1e6).astype(np.int64) + 2**40)
+    np.testing.assert_array_equal(out["mode"], mode.astype(np.float32))
+    assert out["flag"].dtype == bool and out["count"].dtype == jnp.int32
+    assert out["big"].dtype == jnp.int64 and out["mode"].dtype == jnp.float32
+    assert out["value"].shape == (11, 2, 3)
+
+
+def test_set_entry_is_at_set_under_vmap():
+    """``set_entry`` equals ``.at[i].set`` (vmapped, per-trial index), leaves the values where
+    ``where`` is false and changes nothing for an index out of range."""
+    values = jnp.arange(12.0).reshape(3, 4)
+    i = jnp.array([0, 3, 1])
+    new = jnp.array([-1.0, -2.0, -3.0])
+    got = jax.vmap(set_entry)(values, i, new)
+    np.testing.assert_array_equal(got, jax.vmap(lambda v, i, x: v.at[i].set(x))(values, i, new))
+    where = jnp.array([True, False, True])
+    got = jax.vmap(set_entry)(values, i, new, where)
+    np.testing.assert_array_equal(got[1], values[1])
+    np.testing.assert_array_equal(set_entry(values[0], 4, 9.0), values[0])
 
 
 def test_empty_batches_give_empty_outputs():

@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.custom_batching import custom_vmap
 
 
@@ -199,6 +200,16 @@ def chunked_loop(
     return call
 
 
+def set_entry(values, i, value, where=True):
+    """``values`` (1-D) with entry ``i`` set to ``value`` where ``where`` holds (else unchanged;
+    an ``i`` out of range changes nothing), as a select over the positions: under ``vmap``,
+    where ``i`` differs between trials, ``values.at[i].set(value)`` is a scatter, which XLA:CPU
+    compiles into a loop of its own per use (a kernel to compile and a call per chunk); the
+    select fuses with its neighbours."""
+    hit = (jnp.arange(values.shape[0]) == i) & where
+    return jnp.where(hit, value, values)
+
+
 def _batched_args(axis_size: int, in_batched, args) -> list:
     """The arguments of a ``custom_vmap`` rule with the unbatched ones broadcast, so that every
     leaf has the batch axis in front."""
@@ -272,43 +283,89 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
     # ``batched`` traced once, to a jaxpr that the loop body replays.
     chunk_args = jax.tree.map(lambda x: jax.ShapeDtypeStruct((chunk,) + x.shape[1:], x.dtype), args)
     call, (out_shape, _) = _traced_once(batched, mode_type, *chunk_args)
-    out0 = jax.tree.map(lambda s: jnp.zeros((padded,) + s.shape[1:], s.dtype), out_shape)
+    # The outputs and ``want`` are held in one buffer per dtype (``_Packing``), so that each
+    # chunk is written back by one scatter per dtype rather than one per output.
+    leaves, out_tree = jax.tree.flatten(out_shape)
+    packing = _Packing([*leaves, jax.ShapeDtypeStruct((chunk,), jnp.dtype(jnp.int32))])
+    buffers0 = packing.zeros(padded)
+    rank = jnp.arange(passes)
+    slots = jnp.arange(padded + chunk, dtype=index)
 
     def advance(mode, want):
         """The next mode that some trial wants (``passes`` when none), its trials' indices in
         order (padded to whole chunks) and their count."""
         want = jnp.where(real, want, 0)
-        counts = jnp.stack([jnp.sum(want == p, dtype=index) for p in range(passes)])
-        later = (jnp.arange(passes) > mode) & (counts > 0)
+        counts = jnp.sum(want[:, None] == rank, axis=0, dtype=index)
+        later = (rank > mode) & (counts > 0)
         nxt = jnp.where(jnp.any(later), jnp.argmax(later), passes).astype(jnp.int32)
-        (idx,) = jnp.nonzero(want == nxt, size=padded + chunk, fill_value=0)
-        return nxt, idx.astype(index), jnp.where(nxt < passes, counts[nxt % passes], 0)
+        # The trials that want ``nxt`` first, in order: a stable sort on "does not want it"
+        # (a single sort, where ``jnp.nonzero`` compiles two cumulative sums and a scatter).
+        # Spare lanes repeat the first of them (a trial of this mode, not one of another).
+        keys = (want != nxt, jnp.arange(padded, dtype=index))
+        _, idx = jax.lax.sort(keys, num_keys=1, is_stable=True)
+        count = jnp.where(nxt < passes, counts[nxt % passes], 0)
+        idx = jnp.where(slots < count, jnp.concatenate([idx, jnp.zeros(chunk, index)]), idx[0])
+        return nxt, idx, count
 
     def body(state):
-        mode, c, count, idx, out, want = state
+        mode, c, count, idx, buffers = state
         start = c * chunk
         first = mode == 0
         ids = jnp.where(first, start + lanes, jax.lax.dynamic_slice(idx, (start,), (chunk,)))
         valid = first | (start + lanes < count)
         new, new_want = call(mode, *jax.tree.map(lambda x: x[ids], args))
+        rows = packing.pack([*jax.tree.leaves(new), new_want.astype(jnp.int32)])
         dest = jnp.where(valid, ids, padded)  # spare lanes of a part-filled chunk: dropped
-        out = jax.tree.map(lambda o, n: o.at[dest].set(n, mode="drop"), out, new)
-        want = want.at[dest].set(new_want.astype(jnp.int32), mode="drop")
+        buffers = {k: b.at[dest].set(rows[k], mode="drop") for k, b in buffers.items()}
         c = c + 1
         done = c * chunk >= count
+        want = packing.unpack(buffers, -1)
         mode, idx, count = jax.lax.cond(done, advance, lambda m, _: (m, idx, count), mode, want)
-        return mode, jnp.where(done, 0, c), count, idx, out, want
+        return mode, jnp.where(done, 0, c), count, idx, buffers
 
     init = (
         jnp.asarray(0, jnp.int32),
         jnp.asarray(0, index),
         jnp.asarray(padded, index),
         jnp.zeros(padded + chunk, index),
-        out0,
-        jnp.zeros(padded, jnp.int32),
+        buffers0,
     )
-    _, _, _, _, out, _ = jax.lax.while_loop(lambda s: s[0] < passes, body, init)
-    return jax.tree.map(lambda y: y[:size], out)
+    *_, buffers = jax.lax.while_loop(lambda s: s[0] < passes, body, init)
+    out = [packing.unpack(buffers, i)[:size] for i in range(len(leaves))]
+    return jax.tree.unflatten(out_tree, out)
+
+
+class _Packing:
+    """Where each of a list of arrays (batch axis first) lies in one 2-D buffer per dtype,
+    ``(batch, columns)``: the arrays of one dtype side by side, booleans held as int32."""
+
+    def __init__(self, specs):
+        self.layout: list[tuple[jnp.dtype, int, int, tuple, jnp.dtype]] = []
+        self.widths: dict[jnp.dtype, int] = {}
+        for spec in specs:
+            dtype = jnp.dtype(spec.dtype)
+            held = jnp.dtype(jnp.int32) if dtype == jnp.dtype(bool) else dtype
+            width = int(np.prod(spec.shape[1:], dtype=int))
+            self.layout.append((held, self.widths.get(held, 0), width, spec.shape[1:], dtype))
+            self.widths[held] = self.widths.get(held, 0) + width
+
+    def zeros(self, rows: int) -> dict:
+        """Empty buffers of ``rows`` rows."""
+        return {k: jnp.zeros((rows, w), k) for k, w in self.widths.items()}
+
+    def pack(self, arrays: list) -> dict:
+        """The buffers' rows holding ``arrays`` (each ``(rows, ...)``, in the order of the
+        specs)."""
+        parts: dict = {k: [] for k in self.widths}
+        for x, (held, _, width, _, _) in zip(arrays, self.layout, strict=True):
+            parts[held].append(x.reshape(x.shape[0], width).astype(held))
+        return {k: jnp.concatenate(v, axis=1) if len(v) > 1 else v[0] for k, v in parts.items()}
+
+    def unpack(self, buffers: dict, i: int):
+        """Array ``i`` of the specs, read from the buffers."""
+        held, offset, width, shape, dtype = self.layout[i]
+        column = buffers[held][:, offset : offset + width]
+        return column.reshape((column.shape[0],) + tuple(shape)).astype(dtype)
 
 
 def _traced_once(fn: Callable, *args):

@@ -46,7 +46,7 @@ from jax.typing import ArrayLike
 
 from ..arm import Arm
 from . import kernels
-from .batching import chunked_loop
+from .batching import chunked_loop, set_entry
 from .linear import (
     RESOLVED_PIVOT,
     STRUCTURAL_TOL,
@@ -262,7 +262,8 @@ def _paper_solver(
         tool, after = kernels.chain(frames, P)
         Y, dp, dR = kernels.residual_and_metrics(T, tool)
         Yw = Y if noise is None else kernels.whiten(Y, T, noise)
-        state = (k, frames, steps, dps.at[k].set(dp), dRs.at[k].set(dR), jnp.sum(Yw * Yw))
+        dps, dRs = set_entry(dps, k, dp), set_entry(dRs, k, dR)
+        state = (k, frames, steps, dps, dRs, jnp.sum(Yw * Yw))
         state = state + (ranks, done, ok)
         if_step = functools.partial(_step, it, mode, state, after, Yw, data)
         return jax.lax.cond(step, if_step, lambda: state)
@@ -310,7 +311,7 @@ def _paper_solver(
         return (
             k + stepping,
             jnp.where(stepping & finite, moved, frames),
-            jnp.where(stepping, steps.at[k].set(step), steps),
+            set_entry(steps, k, step, stepping),
             dps,
             dRs,
             cost,

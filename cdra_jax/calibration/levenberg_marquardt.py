@@ -84,7 +84,7 @@ from jax.typing import ArrayLike
 
 from ..arm import Arm
 from . import kernels
-from .batching import chunked_loop
+from .batching import chunked_loop, set_entry
 from .linear import (
     RESOLVED_PIVOT,
     STRUCTURAL_TOL,
@@ -362,9 +362,9 @@ def _lm_solver(
         cost_t = jnp.sum(Yw * Yw)
         take = pending & (cost_t <= cost) & jnp.all(jnp.isfinite(frames_t))
         hist = (
-            jnp.where(take, steps.at[k].set(jnp.linalg.norm(dX)), steps),
-            jnp.where(take, dps.at[k + 1].set(dp), dps),
-            jnp.where(take, dRs.at[k + 1].set(dR), dRs),
+            set_entry(steps, k, jnp.linalg.norm(dX), take),
+            set_entry(dps, k + 1, dp, take),
+            set_entry(dRs, k + 1, dR, take),
         )
         frames = jnp.where(take, frames_t, frames)
         cost = jnp.where(take, cost_t, cost)
@@ -399,9 +399,9 @@ def _lm_solver(
         at = jnp.where(first, 0, k + 1)  # Eqs. 20-21 of the nominal model, or after step k
         live = trying | first
         hist = (
-            jnp.where(trying, steps.at[k].set(jnp.where(take, moved, 0.0)), steps),
-            jnp.where(live, dps.at[at].set(jnp.where(take, dp, dps[k])), dps),
-            jnp.where(live, dRs.at[at].set(jnp.where(take, dR, dRs[k])), dRs),
+            set_entry(steps, k, jnp.where(take, moved, 0.0), trying),
+            set_entry(dps, at, jnp.where(take, dp, dps[k]), live),
+            set_entry(dRs, at, jnp.where(take, dR, dRs[k]), live),
         )
         u = pick(u + scaled, u)
         frames, (cost, N, g) = pick((frames_t, (cost_t, N_t, g_t)), (frames, (cost, N, g)))
