@@ -200,6 +200,16 @@ def chunked_loop(
     return call
 
 
+def _held_exactly(dtype, integer) -> bool:
+    """Whether every value of ``dtype`` (bool or an integer type) is one of ``integer``."""
+    if dtype == jnp.dtype(bool):
+        return True
+    if not jnp.issubdtype(dtype, jnp.integer):
+        return False
+    info, into = jnp.iinfo(dtype), jnp.iinfo(integer)
+    return bool(into.min <= info.min and info.max <= into.max)
+
+
 def set_entry(values, i, value, where=True):
     """``values`` (1-D) with entry ``i`` set to ``value`` where ``where`` holds (else unchanged;
     an ``i`` out of range changes nothing), as a select over the positions: under ``vmap``,
@@ -291,11 +301,10 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
     rank = jnp.arange(passes)
     slots = jnp.arange(padded + chunk, dtype=index)
 
-    def advance(mode, want):
+    def advance(mode, want, counts):
         """The next mode that some trial wants (``passes`` when none), its trials' indices in
         order (padded to whole chunks) and their count."""
         want = jnp.where(real, want, 0)
-        counts = jnp.sum(want[:, None] == rank, axis=0, dtype=index)
         later = (rank > mode) & (counts > 0)
         nxt = jnp.where(jnp.any(later), jnp.argmax(later), passes).astype(jnp.int32)
         # The trials that want ``nxt`` first, in order: a stable sort on "does not want it"
@@ -308,7 +317,7 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
         return nxt, idx, count
 
     def body(state):
-        mode, c, count, idx, buffers = state
+        mode, c, count, idx, buffers, counts = state
         start = c * chunk
         first = mode == 0
         ids = jnp.where(first, start + lanes, jax.lax.dynamic_slice(idx, (start,), (chunk,)))
@@ -316,12 +325,20 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
         new, new_want = call(mode, *jax.tree.map(lambda x: x[ids], args))
         rows = packing.pack([*jax.tree.leaves(new), new_want.astype(jnp.int32)])
         dest = jnp.where(valid, ids, padded)  # spare lanes of a part-filled chunk: dropped
-        buffers = {k: b.at[dest].set(rows[k], mode="drop") for k, b in buffers.items()}
+        buffers = tuple(b.at[dest].set(r, mode="drop") for b, r in zip(buffers, rows, strict=True))
+        # The trials that want each mode, counted as the chunks hand them on (over the chunk's
+        # lanes: a sum over the whole batch is a tree of reductions that XLA compiles apart).
+        # A trial's want changes only when its own mode evaluates it, so the counts of the
+        # modes after the current one are exact.
+        handed = (new_want[:, None] == rank) & (valid & (ids < size))[:, None]
+        counts = counts + jnp.sum(handed, axis=0, dtype=index)
         c = c + 1
         done = c * chunk >= count
         want = packing.unpack(buffers, -1)
-        mode, idx, count = jax.lax.cond(done, advance, lambda m, _: (m, idx, count), mode, want)
-        return mode, jnp.where(done, 0, c), count, idx, buffers
+        mode, idx, count = jax.lax.cond(
+            done, advance, lambda m, *_: (m, idx, count), mode, want, counts
+        )
+        return mode, jnp.where(done, 0, c), count, idx, buffers, counts
 
     init = (
         jnp.asarray(0, jnp.int32),
@@ -329,43 +346,52 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
         jnp.asarray(padded, index),
         jnp.zeros(padded + chunk, index),
         buffers0,
+        jnp.zeros(passes, index),
     )
-    *_, buffers = jax.lax.while_loop(lambda s: s[0] < passes, body, init)
+    _, _, _, _, buffers, _ = jax.lax.while_loop(lambda s: s[0] < passes, body, init)
     out = [packing.unpack(buffers, i)[:size] for i in range(len(leaves))]
     return jax.tree.unflatten(out_tree, out)
 
 
 class _Packing:
     """Where each of a list of arrays (batch axis first) lies in one 2-D buffer per dtype,
-    ``(batch, columns)``: the arrays of one dtype side by side, booleans held as int32."""
+    ``(batch, columns)``: the arrays of one dtype side by side, and booleans and the integers
+    that it holds exactly in one buffer of the default integer type. The buffers are a tuple
+    (dtypes are no pytree keys)."""
 
     def __init__(self, specs):
-        self.layout: list[tuple[jnp.dtype, int, int, tuple, jnp.dtype]] = []
-        self.widths: dict[jnp.dtype, int] = {}
+        self.dtypes: list[jnp.dtype] = []
+        self.widths: list[int] = []
+        self.layout: list[tuple[int, int, int, tuple, jnp.dtype]] = []
+        integer = jnp.asarray(0).dtype
         for spec in specs:
             dtype = jnp.dtype(spec.dtype)
-            held = jnp.dtype(jnp.int32) if dtype == jnp.dtype(bool) else dtype
+            held = integer if _held_exactly(dtype, integer) else dtype
+            if held not in self.dtypes:
+                self.dtypes.append(held)
+                self.widths.append(0)
+            b = self.dtypes.index(held)
             width = int(np.prod(spec.shape[1:], dtype=int))
-            self.layout.append((held, self.widths.get(held, 0), width, spec.shape[1:], dtype))
-            self.widths[held] = self.widths.get(held, 0) + width
+            self.layout.append((b, self.widths[b], width, tuple(spec.shape[1:]), dtype))
+            self.widths[b] += width
 
-    def zeros(self, rows: int) -> dict:
+    def zeros(self, rows: int) -> tuple:
         """Empty buffers of ``rows`` rows."""
-        return {k: jnp.zeros((rows, w), k) for k, w in self.widths.items()}
+        return tuple(jnp.zeros((rows, w), k) for k, w in zip(self.dtypes, self.widths, strict=True))
 
-    def pack(self, arrays: list) -> dict:
+    def pack(self, arrays: list) -> tuple:
         """The buffers' rows holding ``arrays`` (each ``(rows, ...)``, in the order of the
         specs)."""
-        parts: dict = {k: [] for k in self.widths}
-        for x, (held, _, width, _, _) in zip(arrays, self.layout, strict=True):
-            parts[held].append(x.reshape(x.shape[0], width).astype(held))
-        return {k: jnp.concatenate(v, axis=1) if len(v) > 1 else v[0] for k, v in parts.items()}
+        parts: list[list] = [[] for _ in self.dtypes]
+        for x, (b, _, width, _, _) in zip(arrays, self.layout, strict=True):
+            parts[b].append(x.reshape(x.shape[0], width).astype(self.dtypes[b]))
+        return tuple(jnp.concatenate(v, axis=1) if len(v) > 1 else v[0] for v in parts)
 
-    def unpack(self, buffers: dict, i: int):
+    def unpack(self, buffers: tuple, i: int):
         """Array ``i`` of the specs, read from the buffers."""
-        held, offset, width, shape, dtype = self.layout[i]
-        column = buffers[held][:, offset : offset + width]
-        return column.reshape((column.shape[0],) + tuple(shape)).astype(dtype)
+        b, offset, width, shape, dtype = self.layout[i]
+        column = buffers[b][:, offset : offset + width]
+        return column.reshape((column.shape[0],) + shape).astype(dtype)
 
 
 def _traced_once(fn: Callable, *args):
