@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -111,7 +112,7 @@ def chain(frames: Array, poses: Array) -> tuple[Array, Array]:
     T = jnp.broadcast_to(frames[0], poses.shape[1:])
     after = []
     for i in range(k):
-        T = compose(T, poses[i])
+        T = jax.lax.optimization_barrier(compose(T, poses[i]))
         after.append(T)
         T = compose(T, frames[i + 1])
     return T, jnp.stack(after)
@@ -499,7 +500,7 @@ def residual_and_metrics(measured: Array, tool: Array) -> tuple[Array, Array, Ar
     Eq. 21's ``|log(R_a^-1 R_c)|`` is the norm of the residual's rotational part (see
     :func:`linearise`), so the logarithm is taken once.
     """
-    Y = residual(measured, tool)
+    Y = jax.lax.optimization_barrier(residual(measured, tool))
     dpos = measured[:, 3] - tool[:, 3]
     m = dpos.shape[-1]
     return Y, jnp.sqrt(jnp.sum(dpos * dpos) / m), jnp.sqrt(jnp.sum(Y[3:] * Y[3:]) / m)
