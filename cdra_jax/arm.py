@@ -148,14 +148,21 @@ class Module(eqx.Module):
                 f"module {self.name!r} ({self.kind}) takes {self.dof} state entries, "
                 f"got trailing dimension {q.shape[-1]}"
             )
+        rotation, translation = self._motion(q)
+        return lie.make_pose(lie.so3_exp(rotation), translation)
+
+    def _motion(self, q: Array) -> tuple[Array, Array]:
+        """The platform's rotation vector and translation (mm) at state ``q (..., dof)``: a
+        spherical module turns by ``q``, a revolute one by ``q`` about its axis, a prismatic one
+        moves by ``q`` along it (its rotation vector zero: ``so3_exp`` of zero is exactly the
+        identity)."""
         axis = jnp.asarray(self.axis, dtype=q.dtype)
         zeros3 = jnp.zeros(q.shape[:-1] + (3,), dtype=q.dtype)
         if self.kind == "spherical":
-            return lie.make_pose(lie.so3_exp(q), zeros3)
+            return q, zeros3
         if self.kind == "revolute":
-            return lie.make_pose(lie.so3_exp(q * axis), zeros3)
-        eye = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), q.shape[:-1] + (3, 3))
-        return lie.make_pose(eye, q * axis)
+            return q * axis, zeros3
+        return zeros3, q * axis
 
 
 def spherical(
@@ -444,10 +451,13 @@ class Arm(eqx.Module):
 
 @compiled_when_eager
 def module_poses(arm: Arm, q: ArrayLike) -> Array:
-    """Module platform poses ``(..., K, 4, 4)`` from the flat state ``q (..., dof)``."""
-    return jnp.stack(
-        [m.pose(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)], -3
-    )
+    """Module platform poses ``(..., K, 4, 4)`` from the flat state ``q (..., dof)``
+    (:meth:`Module.pose` of each module, the exponentials of all modules in one call: traced
+    and compiled once, not once per module)."""
+    motions = [m._motion(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)]
+    rotation = jnp.stack([r for r, _ in motions], -2)
+    translation = jnp.stack([p for _, p in motions], -2)
+    return lie.make_pose(lie.so3_exp(rotation), translation)
 
 
 @compiled_when_eager
