@@ -127,12 +127,6 @@ def _cross(a, b):
     )
 
 
-def _dot3(a, b):
-    """Dot product of two 3-sequences of equally shaped arrays (the leading index), as a sum of
-    three products (a reduction over an axis of three compiles into far more code)."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
 def so3_log(R: Array) -> Array:
     """:func:`cdra_jax.lie.so3_log` for rotations ``(3, 3, ...)``: ``-> (3, ...)``.
 
@@ -179,7 +173,7 @@ def se3_log(T: Array) -> Array:
     """
     w = so3_log(T[:, :3])
     p = T[:, 3]
-    x = _dot3(w, w)
+    x = jnp.sum(w * w, axis=0)
     small = x < lie._SMALL_ANGLE_SQ
     safe_x = jnp.where(small, jnp.ones_like(x), x)
     t = jnp.sqrt(safe_x)
@@ -236,7 +230,7 @@ def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
         ``(J, Q, J^-1)``, each ``(3, 3, ...)``.
     """
     v, w = xi[:3], xi[3:]
-    x = _dot3(w, w)
+    x = jnp.sum(w * w, axis=0)
     c1, c2, c3, b, ci = _series_or_exact(
         x,
         (
@@ -258,7 +252,7 @@ def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
     # hat(b x a)): W^2 = w w^T - x I, W V + V W = v w^T + w v^T - 2 d I, W V W = -d W,
     # W^2 V + V W^2 - 3 W V W = hat(w x u) + d W = 2 d W - x V, W V W^2 + W^2 V W = -2 d W^2.
     W, V = _hat(w), _hat(v)
-    d = _dot3(w, v)
+    d = jnp.sum(w * v, axis=0)
     eye = jnp.eye(3, dtype=xi.dtype).reshape((3, 3) + (1,) * (xi.ndim - 1))
     ww = w[:, None] * w[None, :]
     W2 = ww - x * eye
