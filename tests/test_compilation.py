@@ -150,3 +150,35 @@ def test_options_change_no_result_of_the_solvers():
         np.testing.assert_allclose(a.errors, b.errors, rtol=0, atol=1e-9)
         np.testing.assert_allclose(a.singular_values, b.singular_values, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(a.delta_p, b.delta_p, rtol=0, atol=1e-9)
+
+
+def test_collection_is_paused_while_tracing_and_restored_after():
+    """The package's jit turns Python's garbage collector off while it traces, lowers or calls
+    (compiles) and restores its state after: on stays on, off stays off, also after an error."""
+    import gc
+
+    seen = []
+
+    def f(x):
+        seen.append(gc.isenabled())
+        return x + 1
+
+    assert gc.isenabled()
+    fn = compilation.jit(f)
+    fn.lower(1.0)
+    fn(jnp.ones(3))  # another shape: traced and compiled by the call
+    assert seen == [False, False] and gc.isenabled()
+
+    def broken(x):
+        raise RuntimeError("in the trace")
+
+    with pytest.raises(RuntimeError):
+        compilation.jit(broken)(1.0)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with compilation.collection_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
