@@ -190,3 +190,38 @@ def test_profile_split_takes_each_thunk_exclusive_of_the_thunks_inside_it(tmp_pa
     assert split._group("$api.py:2479 block_until_ready") is None
     assert split._group("ThunkExecutor::Execute (wait for completion)") is None
     assert set(groups.values()) == set(split.GROUPS)
+
+
+def test_compile_split_counts_ir_lines_and_finds_the_package_frame(tmp_path):
+    """benchmarks/compile_split.py: the lines of each function of an LLVM IR file, and the
+    innermost frame inside ``cdra_jax`` of an HLO instruction (frames outside it skipped;
+    instructions without a frame left out)."""
+    split = _load("compile_split")
+    ir = tmp_path / "m.ir-with-opt.ll"
+    ir.write_text(
+        "; header\ndefine void @fusion.1(ptr %a) {\n  %x = load\n  ret void\n}\n"
+        "declare void @ext()\ndefine internal void @dot_kernel() {\n  ret void\n}\n"
+    )
+    assert split._functions(str(ir)) == {"fusion.1": 2, "dot_kernel": 1}
+    hlo = "\n".join(
+        [
+            "HloModule jit_f",
+            "ENTRY %main {",
+            '  %fusion.1 = f64[3] fusion(%p), metadata={op_name="x" stack_frame_id=2}',
+            "  %dot = f64[3] dot(%p, %q)",
+            "}",
+            "FileNames",
+            '1 "/site-packages/jax/_src/numpy/ufuncs.py"',
+            '2 "/repo/cdra_jax/lie.py"',
+            "FunctionNames",
+            '1 "multiply"',
+            '2 "so3_exp"',
+            "FileLocations",
+            "1 file_name_id=2 function_name_id=2 line=10",
+            "2 file_name_id=1 function_name_id=1 line=99",
+            "StackFrames",
+            "1 file_location_id=1 parent_frame_id=1",
+            "2 file_location_id=2 parent_frame_id=1",
+        ]
+    )
+    assert split._sources(hlo) == {"fusion.1": "lie.py:so3_exp"}

@@ -1,0 +1,173 @@
+"""What XLA:CPU compiles for the vmapped solvers: LLVM modules, IR lines, and where they come from.
+
+Compile time is noisy on a shared machine; the size of what XLA hands to LLVM is not. This
+script compiles the vmapped paper or LM solver (the paper's problem, 4,096 noise-free trials of
+15 poses, the package's compile options) in a child process that dumps XLA's output
+(``XLA_FLAGS=--xla_dump_to``), and reports, deterministically for a given jax version:
+
+* the number of LLVM modules (the fused kernels, split into parts for parallel code generation,
+  and every operation that XLA emits as a kernel of its own: small matrix products, reductions
+  rewritten as trees, the loops of scatters, broadcasts of loop state);
+* the lines of optimised LLVM IR, in total and grouped by the package function that the HLO
+  instructions come from (the innermost frame of ``cdra_jax`` in their stack);
+* the child's trace, lowering and XLA compile times (wall and CPU), for orientation only.
+
+    python benchmarks/compile_split.py [--solver paper|lm] [--top 15] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+
+_CHILD = r"""
+import json, sys, time
+sys.path.insert(0, {root!r})
+import jax
+jax.config.update("jax_enable_x64", True)
+import cdra_jax as cj
+from cdra_jax import simulation
+arm = cj.default_arm()
+keys = jax.random.split(jax.random.PRNGKey(0), 4096)
+q, T, *_ = jax.jit(jax.vmap(lambda k: simulation.simulate_trial(k, arm, 15)))(keys)
+solve = {{"paper": cj.calibrate_paper, "lm": cj.calibrate_lm}}[{solver!r}]
+f = cj.jit(jax.vmap(lambda q, T: solve(arm, q, T, throw=False)))
+t0, c0 = time.perf_counter(), time.process_time()
+traced = f.trace(q, T)
+t1 = time.perf_counter()
+lowered = traced.lower()
+t2, c2 = time.perf_counter(), time.process_time()
+lowered.compile()
+t3, c3 = time.perf_counter(), time.process_time()
+print(json.dumps(dict(trace_s=t1 - t0, lower_s=t2 - t1, xla_s=t3 - t2, trace_lower_cpu_s=c2 - c0,
+                      xla_cpu_s=c3 - c2)))
+"""
+
+
+def _functions(path: str) -> dict[str, int]:
+    """Lines of each function defined in an LLVM IR file."""
+    out: dict[str, int] = collections.Counter()
+    current = None
+    with open(path) as f:
+        for line in f:
+            m = re.match(r"define .*@([\w.\-]+)\(", line)
+            if m:
+                current = m.group(1)
+            elif line.startswith("}"):
+                current = None
+            elif current:
+                out[current] += 1
+    return out
+
+
+def _sources(hlo_text: str) -> dict[str, str]:
+    """The innermost ``cdra_jax`` frame (``file:function``) of every HLO instruction."""
+    files, funcs, locs, frames = {}, {}, {}, {}
+    section = None
+    body = []
+    for line in hlo_text.splitlines():
+        if line in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
+            section = line
+            continue
+        if line.startswith(("%", "ENTRY", "HloModule", "  ")):
+            section = None
+        if section is None:
+            body.append(line)
+            continue
+        m = re.match(r"^(\d+) (.*)$", line)
+        if not m:
+            continue
+        i, rest = int(m.group(1)), m.group(2)
+        fields = dict(re.findall(r"(\w+)=(\d+)", rest))
+        if section == "FileNames":
+            files[i] = rest.strip('"')
+        elif section == "FunctionNames":
+            funcs[i] = rest.strip('"')
+        elif section == "FileLocations":
+            locs[i] = (int(fields["file_name_id"]), int(fields["function_name_id"]))
+        else:
+            frames[i] = (int(fields["file_location_id"]), int(fields["parent_frame_id"]))
+    out = {}
+    for line in body:
+        m = re.match(r"\s+(?:ROOT )?%([\w.\-]+) = .*stack_frame_id=(\d+)", line)
+        if not m:
+            continue
+        frame, seen = int(m.group(2)), set()
+        while frame and frame not in seen and frame in frames:
+            seen.add(frame)
+            loc, parent = frames[frame]
+            file, func = locs[loc]
+            if "/cdra_jax/" in files[file]:
+                out[m.group(1)] = f"{os.path.basename(files[file])}:{funcs[func]}"
+                break
+            frame = parent
+    return out
+
+
+def measure(solver: str, top: int) -> dict:
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as dump:
+        env = dict(
+            os.environ, XLA_FLAGS=f"--xla_dump_to={dump} --xla_dump_hlo_module_re=.*lambda.*"
+        )
+        done = subprocess.run(
+            [sys.executable, "-c", _CHILD.format(root=root, solver=solver)],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        times = json.loads(done.stdout.strip().splitlines()[-1])
+        hlo = sorted(glob.glob(os.path.join(dump, "*jit__lambda.cpu_after_optimizations.txt")))[-1]
+        module = os.path.basename(hlo).split(".")[0]
+        ir_files = glob.glob(os.path.join(dump, f"{module}.*.ir-with-opt.ll"))
+        lines: dict[str, int] = collections.Counter()
+        for path in ir_files:
+            lines.update(_functions(path))
+        with open(hlo) as f:
+            sources = _sources(f.read())
+    by_source: dict[str, int] = collections.Counter()
+    for name, n in lines.items():
+        by_source[sources.get(name.removesuffix("_kernel"), "(made by XLA)")] += n
+    total = sum(lines.values())
+    return dict(
+        solver=solver,
+        llvm_modules=len(ir_files),
+        modules_outside_parts=sum("part_" not in os.path.basename(p) for p in ir_files),
+        ir_lines=total,
+        by_source=dict(by_source.most_common(top)),
+        **times,
+    )
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--solver", choices=("paper", "lm"), default="paper")
+    parser.add_argument("--top", type=int, default=15, help="package functions listed")
+    parser.add_argument("--json", action="store_true", help="print one JSON object last")
+    args = parser.parse_args(argv)
+    r = measure(args.solver, args.top)
+    print(
+        f"{r['solver']}: {r['llvm_modules']} LLVM modules ({r['modules_outside_parts']} outside "
+        f"the parallel-codegen parts), {r['ir_lines']} lines of optimised IR"
+    )
+    print(
+        f"trace {r['trace_s']:.2f} s, lowering {r['lower_s']:.2f} s, XLA {r['xla_s']:.2f} s "
+        f"({r['xla_cpu_s']:.2f} s CPU)"
+    )
+    for source, n in r["by_source"].items():
+        print(f"{n:7d} {100 * n / r['ir_lines']:5.1f} %  {source}")
+    if args.json:
+        print(json.dumps(r))
+    return r
+
+
+if __name__ == "__main__":
+    main()
