@@ -428,11 +428,14 @@ def lm_normal_equations(
     """
     dtype = after.dtype
     _, Q, Ji = se3_left_jacobian_blocks(-r)  # J_r^-1(r) = J_l^-1(-r) = [[Ji, -Ji Q Ji], [0, Ji]]
-    a, b = Ji, -_matmul3(_matmul3(Ji, Q), Ji)  # c = a: the rotation rows (_split_gram)
+    # a and b computed once each (_computed_once), not again inside every element of V that
+    # reads them: LM took about a tenth less time.
+    a = _computed_once(Ji)
+    b = _computed_once(-_matmul3(_matmul3(a, Q), a))  # c = a: the rotation rows (_split_gram)
     rw, rotation_scale = r, None
     if noise is not None:  # G = S [[I, -hat(p_meas)], [0, I]], S = diag(I / s_pos, I / s_rot)
         sp = jnp.asarray(noise.position_mm, dtype)
-        b = (b - _matmul3(_hat(measured[:, 3]), Ji)) / sp
+        b = (b - _matmul3(_hat(measured[:, 3]), a)) / sp
         a = a / sp
         rotation_scale = sp / jnp.asarray(noise.rotation_rad, dtype)  # c R = (a R) s_pos / s_rot
         rw = whiten(r, measured, noise)
@@ -441,6 +444,17 @@ def lm_normal_equations(
     V = jnp.concatenate([_rows_times(a, R), _rows_times(a, H) + _rows_times(b, R)], axis=1)
     N, g = _split_gram(V, rw, rotation_scale)
     return N, -g, rw  # the sign of J on g
+
+
+def _computed_once(M: Array) -> Array:
+    """``M (3, 3, m)`` unchanged, through a product with the identity. XLA:CPU fuses
+    element-wise work into each of its consumers and evaluates it there for every element of
+    the consumer's output, but it never fuses a matrix product: the product's result is
+    computed once and read. (An optimisation barrier does not do this: XLA:CPU removes it.)
+    The product runs pose-first, its natural layout, and is read pose-last without a copy;
+    finite entries come out exactly."""
+    eye = jnp.eye(3, dtype=M.dtype)
+    return jnp.moveaxis(jnp.einsum("ijp,jk->pik", M, eye), 0, -1)
 
 
 def _rows_times(a: Array, M: Array) -> Array:
