@@ -379,4 +379,5 @@ GC_THRESHOLDS = (20_000, 50, 100)
 programs: the ``cdra-jax`` command and the test processes (CPython's default: 700, 10, 10).
 Tracing and lowering create millions of short-lived objects, and the default runs a collection
 every few hundred of them. A warm ``cdra-jax calibrate`` of 15 poses: 1.97 s against 2.10 s
-(medians of 5, alternated). The package's library functions never change them."""
+(medians of 5, alternated). The package's library functions never change them (its
+:func:`jit` turns the collector off while it traces and compiles: :func:`collection_paused`)."""
