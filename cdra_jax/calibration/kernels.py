@@ -429,10 +429,10 @@ def lm_normal_equations(
     """
     dtype = after.dtype
     _, Q, Ji = se3_left_jacobian_blocks(-r)  # J_r^-1(r) = J_l^-1(-r) = [[Ji, -Ji Q Ji], [0, Ji]]
-    # a and b computed once each (_computed_once), not again inside every element of V that
-    # reads them: LM took about a tenth less time.
+    # a, a Q and b computed once each (_computed_once), not again inside every element that
+    # reads them: LM took about a tenth less time (a Q: 2 % more).
     a = _computed_once(Ji)
-    b = _computed_once(-_matmul3(_matmul3(a, Q), a))  # c = a: the rotation rows (_split_gram)
+    b = _computed_once(-_matmul3(_computed_once(_matmul3(a, Q)), a))  # c = a (_split_gram)
     rw, rotation_scale = r, None
     if noise is not None:  # G = S [[I, -hat(p_meas)], [0, I]], S = diag(I / s_pos, I / s_rot)
         sp = jnp.asarray(noise.position_mm, dtype)
