@@ -157,7 +157,7 @@ def collection_paused():
     Tracing a solver creates tens of thousands of Python objects (tracers, equations), and the
     collector's full collections, which this triggers, traverse every object the process holds
     (after a simulation, its cached programs too): about a fifth of the paper solver's trace
-    time (0.38-0.42 s instead of 0.48-0.59 s after generating the problems,
+    time (0.38-0.45 s instead of 0.48-0.59 s after generating the problems,
     ``benchmarks/README.md``). The garbage of the block is collected after it, as usual. Around
     a call that does not compile, the block costs two calls of :mod:`gc`.
     """
