@@ -164,8 +164,9 @@ def test_se3_left_jacobian_is_the_derivative_of_exp():
     rng = np.random.default_rng(3)
     scales = [[30.0] * 3 + [1.0] * 3, [1.0] * 3 + [0.05] * 3, [1.0] * 3 + [1e-5] * 3]
     xis = np.concatenate([rng.normal(size=(8, 6)) * s for s in scales])
-    # Both sides of the small-angle switch, and zero rotation.
+    # Both sides of the small-angle switch, zero rotation, and rotations near pi.
     edges = [[1, 2, 3, 0, 0, 0], [1, 2, 3, 0.0999, 0, 0], [1, 2, 3, 0.1001, 0, 0]]
+    edges += [[1, 2, 3, 1e-9, 0, 0], [1, -2, 3, 3.0, 0.9, -0.4], [-3, 2, 1, 0, 0, 3.1]]
     xis = np.concatenate([xis, edges])
     xis = jnp.asarray(xis)
     J = jnp.moveaxis(jax.jit(kernels.se3_left_jacobian)(xis.T), -1, 0)
@@ -173,6 +174,12 @@ def test_se3_left_jacobian_is_the_derivative_of_exp():
     ref = jax.jit(jax.vmap(_left_jacobian_autodiff))(xis)
     np.testing.assert_allclose(J, ref, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
     np.testing.assert_allclose(J_inv @ ref, np.broadcast_to(np.eye(6), ref.shape), atol=1e-12)
+    # The inverse's blocks in closed form against the inverse of J's: B = -J^-1 Q J^-1.
+    Jb, Qb = kernels.se3_left_jacobian_blocks(xis.T)
+    Ji, B = kernels.se3_left_jacobian_inverse_blocks(xis.T)
+    Ji, B, Jb, Qb = (np.moveaxis(np.asarray(m), -1, 0) for m in (Ji, B, Jb, Qb))
+    np.testing.assert_allclose(Ji @ Jb, np.broadcast_to(np.eye(3), Jb.shape), atol=1e-13)
+    np.testing.assert_allclose(B, -Ji @ Qb @ Ji, rtol=0, atol=1e-13 * np.abs(B).max())
 
 
 @eqx.filter_jit

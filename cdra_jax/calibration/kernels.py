@@ -215,7 +215,7 @@ def _series_or_exact(x, series, exact):
     return tuple(jnp.where(small, s(x), e(*trig)) for s, e in zip(series, exact, strict=True))
 
 
-def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
+def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array]:
     """Blocks of the left Jacobian of SE(3), ``J_l(xi) = [[J, Q], [0, J]]``, for ``xi (6, ...)``.
 
     ``exp(hat(xi + d)) ~= exp(hat(J_l(xi) d)) exp(hat(xi))`` with twists ``(v, w)``: ``J`` is the
@@ -230,25 +230,23 @@ def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
     Taylor series below the small-angle threshold.
 
     Returns:
-        ``(J, Q, J^-1)``, each ``(3, 3, ...)``.
+        ``(J, Q)``, each ``(3, 3, ...)``.
     """
     v, w = xi[:3], xi[3:]
     x = jnp.sum(w * w, axis=0)
-    c1, c2, c3, b, ci = _series_or_exact(
+    c1, c2, c3, b = _series_or_exact(
         x,
         (
             lambda x: (1 - x / 20 * (1 - x / 42 * (1 - x / 72 * (1 - x / 110)))) / 6,
             lambda x: (1 - x / 30 * (1 - x / 56 * (1 - x / 90 * (1 - x / 132)))) / 24,
             lambda x: 1 / 120 - x / 2520 + x * x / 120960 - x * x * x / 9979200,
             lambda x: 0.5 * (1 - x / 12 * (1 - x / 30 * (1 - x / 56 * (1 - x / 90)))),
-            lambda x: 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
         ),
         (
             lambda x, t, s, omc, hcot: (t - s) / (x * t),
             lambda x, t, s, omc, hcot: (0.5 * x - omc) / (x * x),
             lambda x, t, s, omc, hcot: (2 * t - 3 * s + t * (1 - omc)) / (2 * x * x * t),
             lambda x, t, s, omc, hcot: omc / x,
-            lambda x, t, s, omc, hcot: (1 - hcot) / x,
         ),
     )
     # The products of hat matrices in closed form (d = w.v, u = w x v; a b^T - b a^T =
@@ -260,28 +258,66 @@ def se3_left_jacobian_blocks(xi: Array) -> tuple[Array, Array, Array]:
     ww = w[:, None] * w[None, :]
     W2 = ww - x * eye
     J = eye + b * W + c1 * W2
-    J_inv = eye - 0.5 * W + ci * W2
     Q = (
         (0.5 - c2 * x) * V
         + (2 * c2 - c1) * d * W
         + c1 * (v[:, None] * w[None, :] + w[:, None] * v[None, :])
         - 2 * d * (c1 * eye + c3 * W2)
     )
-    return J, Q, J_inv
+    return J, Q
 
 
 def se3_left_jacobian(xi: Array) -> Array:
     """``J_l(xi) = [[J, Q], [0, J]]`` (see :func:`se3_left_jacobian_blocks`): ``(6, 6, ...)``."""
-    J, Q, _ = se3_left_jacobian_blocks(xi)
+    J, Q = se3_left_jacobian_blocks(xi)
     return jnp.concatenate(
         [jnp.concatenate([J, Q], axis=1), jnp.concatenate([jnp.zeros_like(J), J], axis=1)]
     )
 
 
+def se3_left_jacobian_inverse_blocks(xi: Array) -> tuple[Array, Array]:
+    """Blocks of ``J_l(xi)^-1 = [[J^-1, B], [0, J^-1]]`` for ``xi (6, ...)``, each ``(3, 3, ...)``.
+
+    ``J^-1 = I - 1/2 W + c W^2`` (``W = hat(w)``, ``c = (1 - (t/2) cot(t/2)) / t^2``,
+    ``t = |w|``) is the inverse left Jacobian of SO(3), and ``B = -J^-1 Q J^-1``
+    (:func:`se3_left_jacobian_blocks`) is the derivative of ``J^-1(w)`` along ``v``:
+
+        B = -1/2 V + c (W V + V W) + 2 c' (w . v) W^2,     c' = dc / d(t^2),
+
+    since ``J_l^-1 = ad / (exp(ad) - I)`` is a function of ``ad(xi) = [[W, V], [0, W]]``, whose
+    top-right block is the derivative of the same function of ``W`` along ``V`` (checked
+    against the inverse of :func:`se3_left_jacobian` by the test suite). With ``W V + V W = v
+    w^T + w v^T - 2 (w . v) I`` and ``W^2 = w w^T - t^2 I`` it costs what ``Q`` costs, without
+    the two 3x3 products of ``J^-1 Q J^-1``. ``c' = ((t/2) cot(t/2) / 2 + t^2 / (4 (1 - cos t))
+    - 1) / t^4``, with their Taylor series below the small-angle threshold.
+    """
+    v, w = xi[:3], xi[3:]
+    x = jnp.sum(w * w, axis=0)
+    c, dc = _series_or_exact(
+        x,
+        (
+            lambda x: 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
+            lambda x: 1 / 720 + x / 15120 + x * x / 403200 + x * x * x / 11975040,
+        ),
+        (
+            lambda x, t, s, omc, hcot: (1 - hcot) / x,
+            lambda x, t, s, omc, hcot: (0.5 * hcot + 0.25 * x / omc - 1) / (x * x),
+        ),
+    )
+    W, V = _hat(w), _hat(v)
+    d = jnp.sum(w * v, axis=0)
+    eye = jnp.eye(3, dtype=xi.dtype).reshape((3, 3) + (1,) * (xi.ndim - 1))
+    W2 = w[:, None] * w[None, :] - x * eye
+    J_inv = eye - 0.5 * W + c * W2
+    B = -0.5 * V + c * (v[:, None] * w[None, :] + w[:, None] * v[None, :] - 2 * d * eye)
+    return J_inv, B + 2 * dc * d * W2
+
+
 def se3_left_jacobian_inverse(xi: Array) -> Array:
-    """``J_l(xi)^-1 = [[J^-1, -J^-1 Q J^-1], [0, J^-1]]``: ``(6, ...) -> (6, 6, ...)``."""
-    _, Q, Ji = se3_left_jacobian_blocks(xi)
-    top = jnp.concatenate([Ji, -_matmul3(_matmul3(Ji, Q), Ji)], axis=1)
+    """``J_l(xi)^-1 = [[J^-1, -J^-1 Q J^-1], [0, J^-1]]``: ``(6, ...) -> (6, 6, ...)``
+    (:func:`se3_left_jacobian_inverse_blocks`)."""
+    Ji, B = se3_left_jacobian_inverse_blocks(xi)
+    top = jnp.concatenate([Ji, B], axis=1)
     return jnp.concatenate([top, jnp.concatenate([jnp.zeros_like(Ji), Ji], axis=1)])
 
 
@@ -428,11 +464,9 @@ def lm_normal_equations(
         measured: ``(3, 4, m)`` measured tool poses. noise: the noise model, or ``None``.
     """
     dtype = after.dtype
-    _, Q, Ji = se3_left_jacobian_blocks(-r)  # J_r^-1(r) = J_l^-1(-r) = [[Ji, -Ji Q Ji], [0, Ji]]
-    # a, a Q and b computed once each (_computed_once), not again inside every element that
-    # reads them: LM took about a tenth less time for a and b, 2 % less again for a Q.
-    a = _computed_once(Ji)
-    b = _computed_once(-_matmul3(_computed_once(_matmul3(a, Q)), a))  # c = a (_split_gram)
+    Ji, B = se3_left_jacobian_inverse_blocks(-r)  # J_r^-1(r) = J_l^-1(-r) = [[Ji, B], [0, Ji]]
+    # a and b computed once (_computed_once), not again inside every element that reads them.
+    a, b = _computed_once(jnp.stack([Ji, B]))  # c = a (_split_gram)
     rw, rotation_scale = r, None
     if noise is not None:  # G = S [[I, -hat(p_meas)], [0, I]], S = diag(I / s_pos, I / s_rot)
         sp = jnp.asarray(noise.position_mm, dtype)
@@ -448,14 +482,15 @@ def lm_normal_equations(
 
 
 def _computed_once(M: Array) -> Array:
-    """``M (3, 3, m)`` unchanged, through a product with the identity. XLA:CPU fuses
-    element-wise work into each of its consumers and evaluates it there for every element of
-    the consumer's output, but it never fuses a matrix product: the product's result is
-    computed once and read. (An optimisation barrier does not do this: XLA:CPU removes it.)
-    The product runs pose-first, its natural layout, and is read pose-last without a copy;
-    finite entries come out exactly."""
-    eye = jnp.eye(3, dtype=M.dtype)
-    return jnp.moveaxis(jnp.einsum("ijp,jk->pik", M, eye), 0, -1)
+    """``M (..., m)`` unchanged, through a product with the identity over its last (pose)
+    axis. XLA:CPU fuses element-wise work into each of its consumers and evaluates it there
+    for every element of the consumer's output, but it never fuses a matrix product: the
+    product's result is computed once and read. (An optimisation barrier does not do this:
+    XLA:CPU removes it.) Over the pose axis the product is one ``(rows, m) x (m, m)`` product
+    in the layout in which ``M`` is computed and read; over a 3x3 block axis XLA laid ``M``
+    out with that axis first, and the fusion that wrote it took more time than the whole
+    evaluation of ``J_r^-1``. Finite entries come out exactly."""
+    return jnp.einsum("...p,pq->...q", M, jnp.eye(M.shape[-1], dtype=M.dtype))
 
 
 def _rows_times(a: Array, M: Array) -> Array:

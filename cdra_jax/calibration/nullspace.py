@@ -90,10 +90,10 @@ def null_directions(frames: ArrayLike, modules: tuple[int, ...], xi: ArrayLike) 
         return jnp.zeros((n, 0), frames.dtype)
     idx = np.asarray(modules)
     moved = -jnp.einsum("cij,cj->ci", lie.adjoint(frames[idx]), xi)  # (k, 6)
-    A = jnp.zeros((k, k1, 6), frames.dtype)
-    cols = np.arange(k)
-    A = A.at[cols, idx].set(moved)
-    A = A.at[cols, idx + 1].set(xi)
+    # Placed by selects on fixed masks: under ``vmap`` a scatter is a loop of its own.
+    block = np.arange(k1)[None, :, None]
+    at_module, after_module = block == idx[:, None, None], block == idx[:, None, None] + 1
+    A = jnp.where(at_module, moved[:, None], jnp.where(after_module, xi[:, None], 0.0))
     return A.reshape(k, n).T
 
 
