@@ -288,8 +288,10 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
 
     args = jax.tree.map(padding, args)
     index = jnp.asarray(0).dtype
-    lanes = jnp.arange(chunk, dtype=index)
-    real = jnp.arange(padded) < size
+    # Index constants as NumPy arrays, embedded in the program: each jnp.arange would be a
+    # kernel of its own to compile.
+    lanes = np.arange(chunk, dtype=index)
+    real = np.arange(padded) < size
     # ``batched`` traced once, to a jaxpr that the loop body replays.
     chunk_args = jax.tree.map(lambda x: jax.ShapeDtypeStruct((chunk,) + x.shape[1:], x.dtype), args)
     call, (out_shape, _) = _traced_once(batched, mode_type, *chunk_args)
@@ -298,8 +300,9 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
     leaves, out_tree = jax.tree.flatten(out_shape)
     packing = _Packing([*leaves, jax.ShapeDtypeStruct((chunk,), jnp.dtype(jnp.int32))])
     buffers0 = packing.zeros(padded)
-    rank = jnp.arange(passes)
-    slots = jnp.arange(padded + chunk, dtype=index)
+    rank = np.arange(passes)
+    slots = np.arange(padded + chunk, dtype=index)
+    order = np.arange(padded, dtype=index)
 
     def advance(mode, want, counts):
         """The next mode that some trial wants (``passes`` when none), its trials' indices in
@@ -310,7 +313,7 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
         # The trials that want ``nxt`` first, in order: a stable sort on "does not want it"
         # (a single sort, where ``jnp.nonzero`` compiles two cumulative sums and a scatter).
         # Spare lanes repeat the first of them (a trial of this mode, not one of another).
-        keys = (want != nxt, jnp.arange(padded, dtype=index))
+        keys = (want != nxt, jnp.asarray(order))
         _, idx = jax.lax.sort(keys, num_keys=1, is_stable=True)
         count = jnp.where(nxt < passes, counts[nxt % passes], 0)
         idx = jnp.where(slots < count, jnp.concatenate([idx, jnp.zeros(chunk, index)]), idx[0])
