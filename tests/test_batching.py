@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 from _devices import run_on_two_cpu_devices
 
-from cdra_jax.calibration.batching import chunked_vmap, multi_pass, set_entry, two_pass
+from cdra_jax.calibration.batching import (
+    _batched_outputs,
+    _traced_once,
+    chunked_loop,
+    chunked_vmap,
+    multi_pass,
+    set_entry,
+    two_pass,
+)
 from cdra_jax.compilation import batched_like
 
 
@@ -138,6 +146,55 @@ def test_set_entry_is_at_set_under_vmap():
     got = jax.vmap(set_entry)(values, i, new, where)
     np.testing.assert_array_equal(got[1], values[1])
     np.testing.assert_array_equal(set_entry(values[0], 4, 9.0), values[0])
+
+
+def _newton_loop():
+    """Newton's iteration for sqrt(a) as a chunked loop whose data hold a value that depends
+    only on the (possibly shared) start ``s``."""
+
+    def init(mode, a, s):
+        return (jnp.asarray(0), s + 0.0 * mode), (a, 2.0 * s)
+
+    def body(it, mode, step, state, data):
+        k, x = state
+        a, _ = data
+        return jax.lax.cond(step, lambda: (k + 1, 0.5 * (x + a / x)), lambda: state)
+
+    def running(state):
+        return state[0] < 60
+
+    def finish(mode, state, data):
+        k, x = state
+        return (k, x * data[1]), jnp.asarray(0, jnp.int32)
+
+    return chunked_loop(init, body, running, finish, chunk_size=4, passes=1, stragglers=4)
+
+
+def test_chunked_loop_keeps_shared_arguments_unbatched():
+    """An argument that is the same for every trial (the arm's frames) is handed to every chunk
+    as it is, and the data that depend only on it stay unbatched: the same results as with the
+    argument broadcast to the batch."""
+    solve = _newton_loop()
+    a = jnp.linspace(1.0, 50.0, 11)
+    shared = jax.jit(jax.vmap(solve, in_axes=(0, None)))(a, 3.0)
+    batched = jax.jit(jax.vmap(solve))(a, jnp.full_like(a, 3.0))
+    for x, y in zip(shared, batched, strict=True):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_allclose(shared[1], 6.0 * np.sqrt(np.asarray(a)), rtol=1e-14)
+
+
+def test_batched_outputs_follow_the_dependencies():
+    """``_batched_outputs``: an output depends on a marked input through any chain of
+    equations, literals and unmarked inputs do not make it batched."""
+
+    def fn(a, b, c):
+        return a * 2.0, jnp.sin(b) + c, jnp.ones(3), b + 1.0
+
+    f32 = jax.ShapeDtypeStruct((), jnp.float32)
+    replay, _ = _traced_once(fn, f32, f32, f32)
+    assert _batched_outputs(replay, [True, False, False]) == [True, False, False, False]
+    assert _batched_outputs(replay, [False, False, True]) == [False, True, False, False]
+    assert _batched_outputs(replay, [False, True, False]) == [False, True, False, True]
 
 
 def test_empty_batches_give_empty_outputs():

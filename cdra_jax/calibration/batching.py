@@ -23,12 +23,14 @@ derivatives from the optimality condition instead (:mod:`.implicit`).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
+from jax.extend.core import Literal
 
 
 def chunked_vmap(fn: Callable, chunk_size: int, *, second_pass: bool = False) -> Callable:
@@ -127,8 +129,11 @@ def chunked_loop(
     in chunks of ``chunk_size``; an unbatched call is a chunk of one trial.
 
     Each per-trial function is traced once, to a jaxpr, and the chunk's loop ``vmap``s its
-    replay, so that the solver's Python runs once per trace of the caller. Not differentiable
-    (as :func:`chunked_vmap`).
+    replay, so that the solver's Python runs once per trace of the caller. Arguments that are
+    the same for every trial under ``vmap`` (the arm's frames) stay unbatched, and so do the
+    parts of ``data`` that depend on nothing else (:func:`_batched_outputs`): neither is
+    broadcast to the batch nor gathered chunk by chunk. Not differentiable (as
+    :func:`chunked_vmap`).
     """
 
     def call(*args):
@@ -139,11 +144,24 @@ def chunked_loop(
         running_r, _ = _traced_once(running, state_s)
         finish_r, (out_s, _) = _traced_once(finish, scalar, state_s, data_s)
 
-        def chunk_fn(mode, *chunk):
-            state, data = jax.vmap(init_r, in_axes=(None,) + (0,) * len(chunk))(mode, *chunk)
-            size = jax.tree.leaves(chunk)[0].shape[0]
+        def chunk_fn(batched, mode, *chunk):
+            """The loop over one chunk; ``batched``: per leaf of the arguments, whether it has
+            the chunk's axis (others are the same for every trial)."""
+            flat, tree = jax.tree.flatten(chunk)
+            axes = jax.tree.unflatten(tree, [0 if b else None for b in batched])
+            # The state has the chunk's axis; the constant data only where it depends on a
+            # batched argument (the arm's frames stay as they are, not broadcast).
+            n_state = len(jax.tree.leaves(state_s))
+            per_trial = _batched_outputs(init_r, [False, *batched])[n_state:]
+            data_axes = jax.tree.unflatten(
+                jax.tree.structure(data_s), [0 if b else None for b in per_trial]
+            )
+            state, data = jax.vmap(init_r, in_axes=(None, *axes), out_axes=(0, data_axes))(
+                mode, *chunk
+            )
+            size = flat[batched.index(True)].shape[0]
             limit = jnp.where(mode == 0, size // stragglers, 0)
-            step_all = jax.vmap(body_r, in_axes=(None, None, None, 0, 0))
+            step_all = jax.vmap(body_r, in_axes=(None, None, None, 0, data_axes))
 
             def loop(c):
                 it, state, _ = c
@@ -152,7 +170,7 @@ def chunked_loop(
 
             start = (jnp.asarray(0, jnp.int32), state, jnp.asarray(True))
             _, state, _ = jax.lax.while_loop(lambda c: c[2], loop, start)
-            out, want = jax.vmap(finish_r, in_axes=(None, 0, 0))(mode, state, data)
+            out, want = jax.vmap(finish_r, in_axes=(None, 0, data_axes))(mode, state, data)
             handed_on = jax.vmap(running_r)(state)
             return out, jnp.where(handed_on, 1, want).astype(jnp.int32)
 
@@ -191,8 +209,11 @@ def chunked_loop(
 
         @wrapped.def_vmap
         def _rule(axis_size, in_batched, *args):
-            args = _batched_args(axis_size, in_batched, args)
-            out = multi_pass(chunk_fn, chunk_size, passes, *args)
+            # Arguments the same for every trial (the arm's frames) stay unbatched: neither
+            # broadcast to the batch nor gathered chunk by chunk.
+            batched = [bool(b) for b in jax.tree.leaves(list(in_batched))]
+            chunk = functools.partial(chunk_fn, batched)
+            out = multi_pass(chunk, chunk_size, passes, *args, batched_leaves=batched)
             return out, jax.tree.map(lambda _: True, out)
 
         return wrapped(*args)
@@ -249,7 +270,7 @@ def two_pass(batched: Callable, chunk_size: int, *args):
     return multi_pass(modes, chunk_size, 2, *args)
 
 
-def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
+def multi_pass(batched: Callable, chunk_size: int, passes: int, *args, batched_leaves=None):
     """A batch in chunks, with later passes over the trials that a pass hands on.
 
     ``batched(mode, *chunk) -> (out, want)`` evaluates one chunk of trials (every leaf of
@@ -266,14 +287,28 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
     A batch that is not a multiple of the chunk size is padded with copies of its first trial
     (never evaluated again, and dropped from the result). An empty batch gives empty outputs.
 
+    ``batched_leaves`` (a bool per leaf of ``args``, in their flattened order; default all):
+    the leaves without it are the same for every trial, have no batch axis, and are handed to
+    every chunk as they are.
+
     Returns:
         ``out`` of the whole batch.
     """
-    size = jax.tree.leaves(args)[0].shape[0]
+    flat_args, args_tree = jax.tree.flatten(args)
+    flags = [True] * len(flat_args) if batched_leaves is None else list(batched_leaves)
+
+    def per_trial(fn, tree):
+        """``fn`` applied to the batched leaves of ``tree`` (the structure of ``args``)."""
+        flat = jax.tree.leaves(tree)
+        return jax.tree.unflatten(
+            args_tree, [fn(x) if b else x for x, b in zip(flat, flags, strict=True)]
+        )
+
+    size = flat_args[flags.index(True)].shape[0]
     mode_type = jax.ShapeDtypeStruct((), jnp.int32)
     if size == 0:
         # No trials: outputs with no trials (the chunk function's shapes, traced for one).
-        one = jax.tree.map(lambda x: jax.ShapeDtypeStruct((1,) + x.shape[1:], x.dtype), args)
+        one = per_trial(lambda x: jax.ShapeDtypeStruct((1,) + x.shape[1:], x.dtype), args)
         out_shape, _ = jax.eval_shape(batched, mode_type, *one)
         return jax.tree.map(lambda s: jnp.zeros((0,) + s.shape[1:], s.dtype), out_shape)
     chunk = min(chunk_size, size)
@@ -286,14 +321,15 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
             return x
         return jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
 
-    args = jax.tree.map(padding, args)
+    args = per_trial(padding, args)
     index = jnp.asarray(0).dtype
     # Index constants as NumPy arrays, embedded in the program: each jnp.arange would be a
     # kernel of its own to compile.
     lanes = np.arange(chunk, dtype=index)
     real = np.arange(padded) < size
     # ``batched`` traced once, to a jaxpr that the loop body replays.
-    chunk_args = jax.tree.map(lambda x: jax.ShapeDtypeStruct((chunk,) + x.shape[1:], x.dtype), args)
+    specs = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), args)
+    chunk_args = per_trial(lambda x: jax.ShapeDtypeStruct((chunk,) + x.shape[1:], x.dtype), specs)
     call, (out_shape, _) = _traced_once(batched, mode_type, *chunk_args)
     # The outputs and ``want`` are held in one buffer per dtype (``_Packing``), so that each
     # chunk is written back by one scatter per dtype rather than one per output.
@@ -325,7 +361,7 @@ def multi_pass(batched: Callable, chunk_size: int, passes: int, *args):
         first = mode == 0
         ids = jnp.where(first, start + lanes, jax.lax.dynamic_slice(idx, (start,), (chunk,)))
         valid = first | (start + lanes < count)
-        new, new_want = call(mode, *jax.tree.map(lambda x: x[ids], args))
+        new, new_want = call(mode, *per_trial(lambda x: x[ids], args))
         rows = packing.pack([*jax.tree.leaves(new), new_want.astype(jnp.int32)])
         dest = jnp.where(valid, ids, padded)  # spare lanes of a part-filled chunk: dropped
         buffers = tuple(b.at[dest].set(r, mode="drop") for b, r in zip(buffers, rows, strict=True))
@@ -408,4 +444,22 @@ def _traced_once(fn: Callable, *args):
         flat = jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *jax.tree.leaves(a))
         return jax.tree.unflatten(out_tree, [jnp.asarray(x) for x in flat])
 
+    replay.jaxpr = closed  # type: ignore[attr-defined]
     return replay, out_shape
+
+
+def _batched_outputs(replay: Callable, batched_inputs: list[bool]) -> list[bool]:
+    """Per output leaf of a replay of :func:`_traced_once`, whether it depends on one of the
+    input leaves marked in ``batched_inputs`` (a forward walk over the jaxpr's equations, each
+    output of an equation depending on all of its inputs: an output marked ``False`` is the
+    same for every trial)."""
+    jaxpr = replay.jaxpr.jaxpr  # type: ignore[attr-defined]
+    marked = {v for v, b in zip(jaxpr.invars, batched_inputs, strict=True) if b}
+
+    def depends(v) -> bool:
+        return not isinstance(v, Literal) and v in marked
+
+    for eqn in jaxpr.eqns:
+        if any(depends(v) for v in eqn.invars):
+            marked.update(eqn.outvars)
+    return [depends(v) for v in jaxpr.outvars]
