@@ -489,7 +489,9 @@ def _computed_once(M: Array) -> Array:
     XLA:CPU removes it.) Over the pose axis the product is one ``(rows, m) x (m, m)`` product
     in the layout in which ``M`` is computed and read; over a 3x3 block axis XLA laid ``M``
     out with that axis first, and the fusion that wrote it took more time than the whole
-    evaluation of ``J_r^-1``. Finite entries come out exactly."""
+    evaluation of ``J_r^-1``. Finite entries come out exactly; a non-finite entry makes its
+    whole row non-finite (``0 * inf``), which only non-finite poses or frames cause, whose trial is
+    non-finite anyway."""
     return jnp.einsum("...p,pq->...q", M, jnp.eye(M.shape[-1], dtype=M.dtype))
 
 
