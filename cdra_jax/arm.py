@@ -151,12 +151,12 @@ class Module(eqx.Module):
         rotation, translation = self._motion(q)
         return lie.make_pose(lie.so3_exp(rotation), translation)
 
-    def _motion(self, q: Array) -> tuple[Array, Array]:
+    def _motion(self, q: Array, axis: Array | None = None) -> tuple[Array, Array]:
         """The platform's rotation vector and translation (mm) at state ``q (..., dof)``: a
-        spherical module turns by ``q``, a revolute one by ``q`` about its axis, a prismatic one
-        moves by ``q`` along it (its rotation vector zero: ``so3_exp`` of zero is exactly the
-        identity)."""
-        axis = jnp.asarray(self.axis, dtype=q.dtype)
+        spherical module turns by ``q``, a revolute one by ``q`` about its axis (``axis``, or
+        the module's own), a prismatic one moves by ``q`` along it (its rotation vector zero:
+        ``so3_exp`` of zero is exactly the identity)."""
+        axis = jnp.asarray(self.axis if axis is None else axis, dtype=q.dtype)
         zeros3 = jnp.zeros(q.shape[:-1] + (3,), dtype=q.dtype)
         if self.kind == "spherical":
             return q, zeros3
@@ -449,12 +449,22 @@ class Arm(eqx.Module):
         return eqx.tree_at(lambda a: a.frames, self, frames)
 
 
+def module_axes(arm: Arm, dtype=None) -> Array:
+    """The modules' axes ``(K, 3)`` (a spherical module's is unused)."""
+    return jnp.stack([jnp.asarray(m.axis, dtype) for m in arm.modules])
+
+
 @compiled_when_eager
-def module_poses(arm: Arm, q: ArrayLike) -> Array:
+def module_poses(arm: Arm, q: ArrayLike, axes: ArrayLike | None = None) -> Array:
     """Module platform poses ``(..., K, 4, 4)`` from the flat state ``q (..., dof)``
     (:meth:`Module.pose` of each module, the exponentials of all modules in one call: traced
-    and compiled once, not once per module)."""
-    motions = [m._motion(qi) for m, qi in zip(arm.modules, arm.split_state(q), strict=True)]
+    and compiled once, not once per module). ``axes (K, 3)``: the modules' axes as an array of
+    the caller's (:func:`module_axes`; the solvers take them as an argument, so that they read
+    nothing but the arm's structure), default the arm's own."""
+    q = jnp.asarray(q)
+    per_module: list = [None] * len(arm.modules) if axes is None else list(jnp.asarray(axes))
+    states = arm.split_state(q)
+    motions = [m._motion(qi, a) for m, qi, a in zip(arm.modules, states, per_module, strict=True)]
     rotation = jnp.stack([r for r, _ in motions], -2)
     translation = jnp.stack([p for _, p in motions], -2)
     return lie.make_pose(lie.so3_exp(rotation), translation)

@@ -151,6 +151,19 @@ def test_module_poses_stack_in_chain_order(cdra):
     np.testing.assert_allclose(P[2], _pose(Rotation.from_rotvec(q[4:]).as_matrix()), atol=2e-15)
 
 
+def test_module_poses_take_the_axes_as_an_array(cdra):
+    """``module_poses(arm, q, axes)`` (as the solvers call it, the axes an argument) equals
+    the arm's own, and other axes move the revolute module about them."""
+    q = np.array([[0.1, -0.2, 0.3, 1.1, -0.4, 0.5, -0.6], [0.0, 0.2, -0.1, -0.7, 0.3, 0.0, 0.2]])
+    axes = arm_mod.module_axes(cdra)
+    assert axes.shape == (3, 3)
+    np.testing.assert_array_equal(module_poses(cdra, q, axes), module_poses(cdra, q))
+    other = axes.at[1].set(jnp.array([0.0, 0.0, 1.0]))
+    P = module_poses(cdra, q, other)
+    z = Rotation.from_rotvec([0.0, 0.0, 1.1]).as_matrix()
+    np.testing.assert_allclose(P[0, 1], _pose(z), atol=2e-15)
+
+
 @pytest.mark.parametrize("scale", [1.0, 50.0])
 def test_frame_errors_round_trip(cdra, scale):
     rng = np.random.default_rng(2)

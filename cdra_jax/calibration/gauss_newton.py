@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from ..arm import Arm
+from ..arm import Arm, module_poses
 from . import kernels
 from .batching import chunked_loop, set_entry
 from .linear import (
@@ -164,6 +164,7 @@ def calibrate_paper(
 
     def make_solver(dtype):
         return _paper_solver(
+            arm,
             max_iterations=max_iterations,
             tol=dtype_default(tol, dtype, float64=TOL_FLOAT64, float32=TOL_FLOAT32),
             rcond=rcond,
@@ -187,6 +188,7 @@ def calibrate_paper(
 
 
 def _paper_solver(
+    arm,
     *,
     max_iterations,
     tol,
@@ -226,11 +228,12 @@ def _paper_solver(
     """
     n_null = len(null_modules)
 
-    def init(mode, frames0, poses, measured, xi, *noise_std):
+    def init(mode, frames0, q, measured, axes, xi, *noise_std):
         """A trial's start: ``(state, data)``, ``data`` the pose-last module and measured poses
         (Eq. 9's layout), the null generators and the noise model."""
         dtype = measured.dtype
         noise = NoiseModel(*noise_std) if weighted else None
+        poses = module_poses(arm, q, axes)  # (m, K, 4, 4), per chunk under vmap
         P = jnp.moveaxis(poses[..., :3, :], 0, -1)  # (K, 3, 4, m)
         T = kernels.pose_stack(measured)  # (3, 4, m)
         finite_in = jnp.all(jnp.isfinite(measured)) & jnp.all(jnp.isfinite(poses))

@@ -82,7 +82,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from ..arm import Arm
+from ..arm import Arm, module_poses
 from . import kernels
 from .batching import chunked_loop, set_entry
 from .linear import (
@@ -204,6 +204,7 @@ def calibrate_lm(
 
     def make_solver(dtype):
         return _lm_solver(
+            arm,
             max_iterations=max_iterations,
             rtol=dtype_default(rtol, dtype, float64=RTOL_FLOAT64, float32=RTOL_FLOAT32),
             atol=dtype_default(atol, dtype, float64=ATOL_FLOAT64, float32=ATOL_FLOAT32),
@@ -227,6 +228,7 @@ def calibrate_lm(
 
 
 def _lm_solver(
+    arm,
     *,
     max_iterations,
     rtol,
@@ -241,11 +243,12 @@ def _lm_solver(
     (:func:`.batching.chunked_loop`; passes as the paper solver's)."""
     n_null = len(null_modules)
 
-    def init(mode, frames0, poses, measured, xi, *noise_std):
+    def init(mode, frames0, q, measured, axes, xi, *noise_std):
         """A trial's start: nothing evaluated yet (the first pass of the loop evaluates the
         nominal model and tests the pose set there)."""
         dtype = measured.dtype
         noise = NoiseModel(*noise_std) if weighted else None
+        poses = module_poses(arm, q, axes)  # (m, K, 4, 4), per chunk under vmap
         P = jnp.moveaxis(poses[..., :3, :], 0, -1)  # (K, 3, 4, m)
         T = kernels.pose_stack(measured)
         n = 6 * frames0.shape[0]

@@ -27,7 +27,7 @@ import lineax as lx
 import optimistix as optx
 from jax.typing import ArrayLike
 
-from ..arm import Arm
+from ..arm import Arm, module_poses
 from . import kernels
 from .levenberg_marquardt import _identifiable_basis
 from .model import NoiseModel
@@ -74,6 +74,7 @@ def calibrate_lm_optimistix(
 
     def make_solver(dtype):
         return _optimistix_solver(
+            arm,
             max_iterations=max_iterations,
             rtol=dtype_default(rtol, dtype, float64=RTOL_FLOAT64, float32=RTOL_FLOAT32),
             atol=dtype_default(atol, dtype, float64=ATOL_FLOAT64, float32=ATOL_FLOAT32),
@@ -93,13 +94,14 @@ def calibrate_lm_optimistix(
     )
 
 
-def _optimistix_solver(*, max_iterations, rtol, atol, rcond, weighted, singular_values):
+def _optimistix_solver(arm, *, max_iterations, rtol, atol, rcond, weighted, singular_values):
     """The per-trial solver for one static configuration (``vmap`` batches it as it is)."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
 
-    def run(frames0, poses, measured, *noise_std):
+    def run(frames0, q, measured, axes, *noise_std):
         dtype = measured.dtype
         noise = NoiseModel(*noise_std) if weighted else None
+        poses = module_poses(arm, q, axes)  # (m, K, 4, 4)
         P = jnp.moveaxis(poses[..., :3, :], 0, -1)  # (K, 3, 4, m)
         T = kernels.pose_stack(measured)  # (3, 4, m)
         nominal = kernels.linearise(frames0, P, T, noise)  # Eq. 9 and Eqs. 20-21 at F_0

@@ -11,7 +11,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from ..arm import Arm, error_twists, module_poses
+from ..arm import Arm, error_twists, module_axes, module_poses
 from . import implicit, kernels
 from .model import NoiseModel
 from .validation import check_noise, check_problem
@@ -126,7 +126,10 @@ def _solve_problem(
 
     ``make_solver(dtype)`` gives one of the solvers' compiled per-trial functions for the
     problem's dtype (float32 or float64: the default tolerances depend on it),
-    ``solve(frames0 (K+1, 4, 4), poses (m, K, 4, 4), measured (m, 4, 4)[, s_pos, s_rot])``; the
+    ``solve(frames0 (K+1, 4, 4), q (m, dof), measured (m, 4, 4), axes (K, 3)[, extra...][,
+    s_pos, s_rot])``: the solver computes the module poses itself
+    (:func:`~cdra_jax.arm.module_poses` with the modules' ``axes``, :func:`~cdra_jax.arm.
+    module_axes`), per chunk of trials under ``vmap`` rather than for the whole batch; the
     noise stds (scalars, or ``(m,)`` per pose) are passed only when a noise model is given.
     Shapes are checked by :func:`.validation.check_problem` and
     :func:`.validation.check_noise` (``ValueError`` at trace time). ``extra(dtype)``: further
@@ -141,8 +144,8 @@ def _solve_problem(
         args += (jnp.asarray(noise.position_mm, dtype), jnp.asarray(noise.rotation_rad, dtype))
     # The solvers iterate; their derivatives come from the optimality condition instead
     # (:mod:`.implicit`), so the iterations run on inputs without derivatives.
-    more = () if extra is None else tuple(extra(dtype))
-    solver_args = args[:3] + more + args[3:]
+    more = (module_axes(arm, dtype),) + (() if extra is None else tuple(extra(dtype)))
+    solver_args = (args[0], q, measured) + more + args[3:]
     sol = make_solver(dtype)(*jax.lax.stop_gradient(solver_args))
     frames, errors, cost = implicit.attach(
         "lm" if sol.solver in ("lm", "lm_optimistix") else "gauss_newton",
