@@ -199,7 +199,9 @@ def _paper_solver(
     singular_values=False,
     predictive_stop=True,
 ):
-    """The per-trial solver for one static configuration, chunked under ``vmap``.
+    """The per-trial solver for one static configuration, chunked under ``vmap``; ``arm``
+    gives the module structure that turns the states ``q`` into module poses (its arrays come
+    as arguments: the frames, the axes, the null generators).
 
     The step is taken from the normal equations (``fast``, float64 with the default ``rcond``)
     or from the SVD of ``D~``. The fast step knows the structural null space of ``D~`` in

@@ -240,7 +240,8 @@ def _lm_solver(
     predictive_stop=True,
 ):
     """The per-trial LM solver for one static configuration, chunked under ``vmap``
-    (:func:`.batching.chunked_loop`; passes as the paper solver's)."""
+    (:func:`.batching.chunked_loop`; passes as the paper solver's); ``arm`` as for the paper
+    solver (:func:`.gauss_newton._paper_solver`)."""
     n_null = len(null_modules)
 
     def init(mode, frames0, q, measured, axes, xi, *noise_std):

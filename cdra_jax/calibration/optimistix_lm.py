@@ -95,7 +95,9 @@ def calibrate_lm_optimistix(
 
 
 def _optimistix_solver(arm, *, max_iterations, rtol, atol, rcond, weighted, singular_values):
-    """The per-trial solver for one static configuration (``vmap`` batches it as it is)."""
+    """The per-trial solver for one static configuration (``vmap`` batches it as it is);
+    ``arm`` gives the module structure that turns the states ``q`` into module poses (its
+    arrays come as arguments)."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
 
     def run(frames0, q, measured, axes, *noise_std):
