@@ -71,14 +71,18 @@ def compiler_options(fast_compile: bool = False) -> dict[str, Any]:
     if fast_compile:
         wanted.update(FAST_COMPILE_OPTIONS)
     flags = os.environ.get("XLA_FLAGS", "")
-    return {k: v for k, v in wanted.items() if f"--{k}" not in flags and _accepted(k, v)}
+    candidates = {k: v for k, v in wanted.items() if f"--{k}" not in flags}
+    if not candidates or _accepted(*candidates.items()):
+        return candidates
+    return {k: v for k, v in candidates.items() if _accepted((k, v))}
 
 
 @functools.cache
-def _accepted(name: str, value: Any) -> bool:
-    """Whether XLA accepts the compile option (one trivial compilation per option, cached)."""
+def _accepted(*options: tuple[str, Any]) -> bool:
+    """Whether XLA accepts the compile options ``(name, value)`` together: one trivial
+    compilation, cached (all the options at once first, one by one only where that fails)."""
     try:
-        jax.jit(lambda x: x, compiler_options={name: value}).lower(0.0).compile()
+        jax.jit(lambda x: x, compiler_options=dict(options)).lower(0.0).compile()
     except jax.errors.JaxRuntimeError as e:
         if "compile option" in str(e):
             return False
