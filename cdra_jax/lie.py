@@ -96,8 +96,15 @@ def _hat3_squared(w: Array) -> Array:
     batch, where the element-wise form fuses with its neighbours.
     """
     eye = jnp.eye(3, dtype=w.dtype)
-    x = jnp.sum(w * w, axis=-1)
+    x = _squared_norm3(w)
     return w[..., :, None] * w[..., None, :] - x[..., None, None] * eye
+
+
+def _squared_norm3(v: Array) -> Array:
+    """``|v|^2`` of vectors ``(..., 3) -> (...)``, as a sum of three products: element-wise
+    code that XLA fuses with what computes ``v`` (a reduction over the last axis is a fusion
+    boundary, and every fusion that reads it evaluates ``v`` again)."""
+    return v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]
 
 
 def _matmul3(A: Array, B: Array) -> Array:
@@ -138,7 +145,7 @@ def _angle_coefficients(theta_sq: Array) -> tuple[Array, Array, Array]:
 def so3_exp(w: ArrayLike) -> Array:
     """Rotation matrix of a rotation vector (Rodrigues, Eq. 26): ``(..., 3) -> (..., 3, 3)``."""
     w = _shaped(w, (3,), "so3_exp", "w")
-    a, b, _ = _angle_coefficients(jnp.sum(w * w, axis=-1))
+    a, b, _ = _angle_coefficients(_squared_norm3(w))
     W = hat3(w)
     W2 = _hat3_squared(w)
     eye = jnp.eye(3, dtype=W.dtype)
@@ -149,7 +156,7 @@ def so3_exp(w: ArrayLike) -> Array:
 def so3_left_jacobian(w: ArrayLike) -> Array:
     """The matrix ``A`` of Eq. 26 (left Jacobian of SO(3)): ``(..., 3) -> (..., 3, 3)``."""
     w = _shaped(w, (3,), "so3_left_jacobian", "w")
-    _, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
+    _, b, c = _angle_coefficients(_squared_norm3(w))
     W = hat3(w)
     eye = jnp.eye(3, dtype=W.dtype)
     return eye + b[..., None, None] * W + c[..., None, None] * _hat3_squared(w)
@@ -206,7 +213,7 @@ def quaternion_log(q: ArrayLike) -> Array:
     q = _shaped(q, (4,), "quaternion_log", "q")
     q = jnp.where(q[..., :1] < 0, -q, q)
     w, v = q[..., 0], q[..., 1:]
-    n_sq = jnp.sum(v * v, axis=-1)
+    n_sq = _squared_norm3(v)
     small = n_sq < 1e-12
     safe_n = jnp.sqrt(jnp.where(small, jnp.ones_like(n_sq), n_sq))
     safe_w = jnp.where(small, w, jnp.ones_like(w))
@@ -230,7 +237,7 @@ def so3_log(R: ArrayLike) -> Array:
 def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
     """The matrix ``A*`` of Eq. 27, ``A^{-1}``: ``(..., 3) -> (..., 3, 3)``; finite up to pi."""
     w = _shaped(w, (3,), "so3_left_jacobian_inverse", "w")
-    x = jnp.sum(w * w, axis=-1)
+    x = _squared_norm3(w)
     small = x < _SMALL_ANGLE_SQ
     safe_x = jnp.where(small, jnp.ones_like(x), x)
     t = jnp.sqrt(safe_x)
@@ -270,7 +277,7 @@ def se3_exp(xi: ArrayLike) -> Array:
     """Pose of a twist ``(v, w)`` (Eq. 26): ``(..., 6) -> (..., 4, 4)``."""
     xi = _shaped(xi, (6,), "se3_exp", "xi")
     v, w = xi[..., :3], xi[..., 3:]
-    a, b, c = _angle_coefficients(jnp.sum(w * w, axis=-1))
+    a, b, c = _angle_coefficients(_squared_norm3(w))
     W = hat3(w)
     W2 = _hat3_squared(w)
     eye = jnp.eye(3, dtype=W.dtype)
@@ -340,7 +347,7 @@ def rotation_angle(R: ArrayLike) -> Array:
     is taken as zero (double where) rather than NaN.
     """
     q = rotation_to_quaternion(_shaped(R, (3, 3), "rotation_angle", "R"))
-    n_sq = jnp.sum(q[..., 1:] * q[..., 1:], axis=-1)
+    n_sq = _squared_norm3(q[..., 1:])
     positive = n_sq > 0
     n = jnp.where(positive, jnp.sqrt(jnp.where(positive, n_sq, 1.0)), 0.0)
     return 2.0 * jnp.arctan2(n, jnp.abs(q[..., 0]))
