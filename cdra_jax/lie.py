@@ -50,7 +50,7 @@ def _shaped(x: ArrayLike, trailing: tuple[int, ...], fn: str, arg: str) -> Array
 def hat3(w: ArrayLike) -> Array:
     """Skew-symmetric matrix of a 3-vector: ``(..., 3) -> (..., 3, 3)``, ``hat(w) x = w x x``."""
     w = _shaped(w, (3,), "hat3", "w")
-    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    x, y, z = jnp.unstack(w, axis=-1)
     o = jnp.zeros_like(x)
     return jnp.stack(
         [
@@ -103,16 +103,20 @@ def _hat3_squared(w: Array) -> Array:
 def _squared_norm3(v: Array) -> Array:
     """``|v|^2`` of vectors ``(..., 3) -> (...)``, as a sum of three products: element-wise
     code that XLA fuses with what computes ``v`` (a reduction over the last axis is a fusion
-    boundary, and every fusion that reads it evaluates ``v`` again)."""
-    return v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]
+    boundary, and every fusion that reads it evaluates ``v`` again). The components are taken
+    apart by one :func:`jax.numpy.unstack` (indexing traces two equations per component;
+    tracing and lowering cost time per equation)."""
+    x, y, z = jnp.unstack(v, axis=-1)
+    return x * x + y * y + z * z
 
 
 def _matmul3(A: Array, B: Array) -> Array:
     """``A B`` for ``A (..., 3, 3)`` and ``B (..., 3, k)``, element-wise (see
-    :func:`_hat3_squared`)."""
-    out = A[..., :, 0, None] * B[..., None, 0, :]
+    :func:`_hat3_squared`): the columns of ``A`` times the rows of ``B``, summed."""
+    columns, rows = jnp.unstack(A, axis=-1), jnp.unstack(B, axis=-2)
+    out = columns[0][..., :, None] * rows[0][..., None, :]
     for j in (1, 2):
-        out = out + A[..., :, j, None] * B[..., None, j, :]
+        out = out + columns[j][..., :, None] * rows[j][..., None, :]
     return out
 
 
