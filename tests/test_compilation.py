@@ -128,9 +128,10 @@ def test_probe_runs_when_first_used_inside_another_jit(monkeypatch):
 
 def test_options_change_no_result_of_the_solvers():
     """The paper and LM solvers compiled with the package's options and with every HLO pass
-    are bitwise equal; with XLA's default (MLIR) emitters they agree to rounding (bitwise at XLA's default optimisation level on 10^4
-    trials, benchmarks/README.md; this suite compiles without LLVM's optimisations, where the
-    two emitters round differently in the last digits). The suite's XLA_FLAGS select the older
+    are bitwise equal; with XLA's default (MLIR) emitters they agree to rounding (bitwise at
+    XLA's default optimisation level on 10^4 trials, benchmarks/README.md; this suite compiles
+    without LLVM's optimisations, where the two emitters round differently in the last
+    digits). The suite's XLA_FLAGS select the older
     emitters, so the default ones are asked for explicitly."""
     arm = cdra_jax.default_arm()
     keys = jax.random.split(jax.random.key(3), 6)
