@@ -265,7 +265,8 @@ def _lm_solver(
             (zero, jnp.asarray(2.0, dtype)),  # lambda, nu
             # N_0, the basis of SVD steps (transposed), their rank, fast steps apply
             (eye, eye, jnp.asarray(n), jnp.asarray(True)),
-            (jnp.zeros(n, dtype), jnp.zeros(n, dtype), zero),  # the next step dX, scaled, gain
+            # the next step dX, scaled, its predicted gain, and the frames it moves to
+            (jnp.zeros(n, dtype), jnp.zeros(n, dtype), zero, frames0),
             (
                 jnp.full((max_iterations,), nan),  # step norms
                 jnp.full((max_iterations + 1,), nan),  # Eq. 20 at every model
@@ -343,7 +344,7 @@ def _lm_solver(
         takes the proposals that the predictive stop left to it. Every pass evaluates the model
         at the proposed step first (the first pass: at the nominal model, ``dX = 0``)."""
         _, P, T, _, _ = data
-        frames_t = kernels.step_frames(state[6][0], state[2])
+        frames_t = state[6][3]
         tool, after = kernels.chain(frames_t, P)
         model = (frames_t, after) + kernels.residual_and_metrics(T, tool)
         return jax.lax.cond(
@@ -379,7 +380,7 @@ def _lm_solver(
         k, u, frames, (cost, N, g), (damping, nu), bases, proposed, hist, done, ok, ahead = state
         pending, last_rate = ahead
         steps, dps, dRs = hist
-        dX, scaled, predicted = proposed
+        dX, scaled, predicted, _ = proposed
         _, _, T, xi, noise = data
         first = it == 0
         trying = running(state) & ~first
@@ -438,7 +439,7 @@ def _lm_solver(
             last_rate = jnp.where(trying & take, rate, last_rate)
         proposed = jax.tree.map(
             lambda a, b: jnp.where(live, a, b),
-            (dX_next, scaled_next, predicted_next),
+            (dX_next, scaled_next, predicted_next, kernels.step_frames(dX_next, frames)),
             proposed,
         )
         finite = jnp.all(jnp.isfinite(frames)) & (jnp.isfinite(cost_t) | ~first)
