@@ -8,8 +8,11 @@ script compiles the vmapped paper or LM solver (the paper's problem, 4,096 noise
 * the number of LLVM modules (the fused kernels, split into parts for parallel code generation,
   and every operation that XLA emits as a kernel of its own: small matrix products, reductions
   rewritten as trees, the loops of scatters, broadcasts of loop state);
+* the kernels (LLVM functions: each fused kernel and each operation emitted on its own), which
+  cost LLVM a few milliseconds each whatever their size;
 * the lines of optimised LLVM IR, in total and grouped by the package function that the HLO
-  instructions come from (the innermost frame of ``cdra_jax`` in their stack);
+  instructions come from (the innermost frame of ``cdra_jax`` in their stack), with the kernels
+  of each;
 * the child's trace, lowering and XLA compile times (wall and CPU), for orientation only.
 
     python benchmarks/compile_split.py [--solver paper|lm] [--top 15] [--json]
@@ -111,6 +114,18 @@ def _sources(hlo_text: str) -> dict[str, str]:
     return out
 
 
+def _by_source(lines: dict[str, int], sources: dict[str, str]) -> tuple[dict, dict]:
+    """Lines of IR and kernels per package function (:func:`_sources`; a kernel named
+    ``<instruction>_kernel`` belongs to the instruction, one without a package frame to XLA)."""
+    by_source: dict[str, int] = collections.Counter()
+    kernels: dict[str, int] = collections.Counter()
+    for name, n in lines.items():
+        source = sources.get(name.removesuffix("_kernel"), "(made by XLA)")
+        by_source[source] += n
+        kernels[source] += 1
+    return by_source, kernels
+
+
 def measure(solver: str, top: int) -> dict:
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     with tempfile.TemporaryDirectory() as dump:
@@ -133,16 +148,16 @@ def measure(solver: str, top: int) -> dict:
             lines.update(_functions(path))
         with open(hlo) as f:
             sources = _sources(f.read())
-    by_source: dict[str, int] = collections.Counter()
-    for name, n in lines.items():
-        by_source[sources.get(name.removesuffix("_kernel"), "(made by XLA)")] += n
+    by_source, kernels_by_source = _by_source(lines, sources)
     total = sum(lines.values())
     return dict(
         solver=solver,
         llvm_modules=len(ir_files),
         modules_outside_parts=sum("part_" not in os.path.basename(p) for p in ir_files),
+        kernels=len(lines),
         ir_lines=total,
         by_source=dict(by_source.most_common(top)),
+        kernels_by_source={k: kernels_by_source[k] for k, _ in by_source.most_common(top)},
         **times,
     )
 
@@ -156,14 +171,17 @@ def main(argv: list[str] | None = None) -> dict:
     r = measure(args.solver, args.top)
     print(
         f"{r['solver']}: {r['llvm_modules']} LLVM modules ({r['modules_outside_parts']} outside "
-        f"the parallel-codegen parts), {r['ir_lines']} lines of optimised IR"
+        f"the parallel-codegen parts), {r['kernels']} kernels, "
+        f"{r['ir_lines']} lines of optimised IR"
     )
     print(
         f"trace {r['trace_s']:.2f} s, lowering {r['lower_s']:.2f} s, XLA {r['xla_s']:.2f} s "
         f"({r['xla_cpu_s']:.2f} s CPU)"
     )
+    print("  lines  share  kernels  package function")
     for source, n in r["by_source"].items():
-        print(f"{n:7d} {100 * n / r['ir_lines']:5.1f} %  {source}")
+        kernels = r["kernels_by_source"][source]
+        print(f"{n:7d} {100 * n / r['ir_lines']:5.1f} % {kernels:8d}  {source}")
     if args.json:
         print(json.dumps(r))
     return r

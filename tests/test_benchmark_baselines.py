@@ -225,3 +225,8 @@ def test_compile_split_counts_ir_lines_and_finds_the_package_frame(tmp_path):
         ]
     )
     assert split._sources(hlo) == {"fusion.1": "lie.py:so3_exp"}
+    lines, kernels = split._by_source(
+        {"fusion.1": 2, "fusion.2": 5, "dot_kernel": 1}, {"fusion.1": "lie.py:so3_exp"}
+    )
+    assert lines == {"lie.py:so3_exp": 2, "(made by XLA)": 6}
+    assert kernels == {"lie.py:so3_exp": 1, "(made by XLA)": 2}
