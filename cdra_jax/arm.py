@@ -462,7 +462,7 @@ def module_poses(arm: Arm, q: ArrayLike, axes: ArrayLike | None = None) -> Array
     the caller's (:func:`module_axes`; the solvers take them as an argument, so that they read
     nothing but the arm's structure), default the arm's own."""
     q = jnp.asarray(q)
-    per_module: list = [None] * len(arm.modules) if axes is None else list(jnp.asarray(axes))
+    per_module = [None] * len(arm.modules) if axes is None else list(jnp.unstack(jnp.asarray(axes)))
     states = arm.split_state(q)
     motions = [m._motion(qi, a) for m, qi, a in zip(arm.modules, states, per_module, strict=True)]
     rotation = jnp.stack([r for r, _ in motions], -2)

@@ -133,7 +133,7 @@ def _solve_problem(
     noise stds (scalars, or ``(m,)`` per pose) are passed only when a noise model is given.
     Shapes are checked by :func:`.validation.check_problem` and
     :func:`.validation.check_noise` (``ValueError`` at trace time). ``extra(dtype)``: further
-    arrays the solver takes after ``measured`` (the structural null generators of
+    arrays the solver takes after the modules' axes (the structural null generators of
     :mod:`.nullspace`), without derivatives.
     """
     q, measured = check_problem(arm, q, measured, allow_underdetermined=allow_underdetermined)
