@@ -130,20 +130,28 @@ def test_null_basis_is_the_svd_null_space_on_random_arms(seed):
         if k:  # the same subspace as the SVD's
             V0 = Vt[a.n_params - k :].T
             np.testing.assert_allclose(Z @ Z.T, V0 @ V0.T, atol=1e-9)
+            # Orthonormal also with the columns scaled as null_space_solve scales them
+            # (Cholesky QR: accurate while the equilibrated columns are well conditioned)
+            B = Z * np.sqrt(np.diag(D.T @ D))[:, None]
+            Q = np.asarray(nullspace.orthonormalise(B))
+            np.testing.assert_allclose(Q.T @ Q, np.eye(k), atol=1e-13)
+            np.testing.assert_allclose(Q @ (Q.T @ B), B, atol=1e-12 * np.abs(B).max())
 
 
 @pytest.mark.parametrize("k", [3, 12])
-def test_orthonormalise_by_qr_is_gram_schmidt(monkeypatch, k):
+def test_orthonormalise_by_householder_is_cholesky_qr(monkeypatch, k):
     """Above ``UNROLLED_COLUMNS`` the basis is a signed Householder QR: the same columns, in
-    the same order and orientation, as the unrolled Gram-Schmidt's (to rounding)."""
+    the same order and orientation, as the unrolled Cholesky QR's (to rounding), for columns
+    of very different scales."""
     A = np.random.default_rng(k).normal(size=(42, k)) * np.logspace(0, 3, k)
     monkeypatch.setattr(nullspace, "UNROLLED_COLUMNS", 64)
-    gram_schmidt = np.asarray(nullspace.orthonormalise(A))
+    cholesky = np.asarray(nullspace.orthonormalise(A))
+    np.testing.assert_allclose(cholesky.T @ cholesky, np.eye(k), atol=1e-13)
     monkeypatch.setattr(nullspace, "UNROLLED_COLUMNS", 0)
     assert not nullspace.unrolled(k)
     qr = np.asarray(nullspace.orthonormalise(A))
     np.testing.assert_allclose(qr.T @ qr, np.eye(k), atol=1e-13)
-    np.testing.assert_allclose(qr, gram_schmidt, atol=1e-12)
+    np.testing.assert_allclose(qr, cholesky, atol=1e-12)
 
 
 def test_null_space_products_in_both_forms_agree(monkeypatch):
