@@ -277,7 +277,10 @@ def null_space_solve(
     products or dot products, which XLA fuses, rather than as matrix products (each a call of
     its own, costly for such small operands under ``vmap``); above
     :data:`~cdra_jax.calibration.nullspace.UNROLLED_COLUMNS` columns, where that code's growth
-    as ``k^2`` costs more than it saves, as matrix products.
+    as ``k^2`` costs more than it saves, as matrix products. The structural test's ``A_s Z_s``
+    is a matrix product for every ``k``: it runs once per problem, and written column by
+    column XLA fused the ``k`` sums into the maximum over them (900 more lines of IR in the
+    paper solver, ``benchmarks/compile_split.py``).
 
     ``damping`` ``M (n, n)`` (positive semi-definite) solves ``(N + M) x = g`` instead, the
     component along ``Z`` projected out as above (the damped Levenberg-Marquardt step of
@@ -326,9 +329,6 @@ def null_space_solve(
         # max |A_s Z_s|
         if not k:
             structural = jnp.zeros((), N.dtype)
-        elif unrolled(k):
-            AZ = [jnp.sum(A * Zs[None, :, c], axis=1) for c in range(k)]
-            structural = jnp.max(jnp.abs(jnp.stack(AZ)))
         else:
             structural = jnp.max(jnp.abs(A @ Zs))
         return smallest, structural
