@@ -214,17 +214,29 @@ def quaternion_log(q: ArrayLike) -> Array:
 
     The result has norm in ``[0, pi]``; the double cover is resolved by flipping to ``w >= 0``.
     """
-    q = _shaped(q, (4,), "quaternion_log", "q")
+    return _quaternion_log(_shaped(q, (4,), "quaternion_log", "q"))[0]
+
+
+def _quaternion_log(q: Array) -> tuple[Array, Array]:
+    """:func:`quaternion_log` and the squared norm of its result, ``(..., 3), (...)``: the
+    result is ``f v`` (``v`` the vector part) and its squared norm ``f^2 |v|^2``."""
     q = jnp.where(q[..., :1] < 0, -q, q)
     w, v = q[..., 0], q[..., 1:]
     n_sq = _squared_norm3(v)
+    f = _quaternion_log_factor(w, n_sq)
+    return f[..., None] * v, f * f * n_sq
+
+
+def _quaternion_log_factor(w: Array, n_sq: Array) -> Array:
+    """``f`` with ``log(q) = f v`` for a unit quaternion ``(w, v)``, ``w >= 0``, ``n_sq =
+    |v|^2``: ``2 atan2(|v|, w) / |v|``, its series for small ``|v|`` (double-where shim)."""
     small = n_sq < 1e-12
     safe_n = jnp.sqrt(jnp.where(small, jnp.ones_like(n_sq), n_sq))
     safe_w = jnp.where(small, w, jnp.ones_like(w))
     exact = 2.0 * jnp.arctan2(safe_n, w) / safe_n
     # 2 atan(n / w) / n = (2 / w) (1 - n^2 / (3 w^2) + ...), with w ~ 1 on this branch.
     taylor = 2.0 / safe_w * (1.0 - n_sq / (3.0 * safe_w * safe_w))
-    return jnp.where(small, taylor, exact)[..., None] * v
+    return jnp.where(small, taylor, exact)
 
 
 @_compiled_when_eager
@@ -241,17 +253,23 @@ def so3_log(R: ArrayLike) -> Array:
 def so3_left_jacobian_inverse(w: ArrayLike) -> Array:
     """The matrix ``A*`` of Eq. 27, ``A^{-1}``: ``(..., 3) -> (..., 3, 3)``; finite up to pi."""
     w = _shaped(w, (3,), "so3_left_jacobian_inverse", "w")
-    x = _squared_norm3(w)
-    small = x < _SMALL_ANGLE_SQ
-    safe_x = jnp.where(small, jnp.ones_like(x), x)
-    t = jnp.sqrt(safe_x)
-    # 1 - t sin t / (2 (1 - cos t)); 1 - cos t = 2 sin^2(t/2) avoids cancellation.
-    exact = (1.0 - 0.5 * t * jnp.sin(t) / (2.0 * jnp.sin(0.5 * t) ** 2)) / safe_x
-    taylor = 1.0 / 12.0 + x / 720.0 + x * x / 30240.0 + x * x * x / 1209600.0
-    c = jnp.where(small, taylor, exact)
+    c = _jacobian_inverse_coefficient(_squared_norm3(w))
     W = hat3(w)
     eye = jnp.eye(3, dtype=W.dtype)
     return eye - 0.5 * W + c[..., None, None] * _hat3_squared(w)
+
+
+def _jacobian_inverse_coefficient(x: Array) -> Array:
+    """``c`` of ``A^-1 = I - hat(w) / 2 + c hat(w)^2`` (:func:`so3_left_jacobian_inverse`)
+    from ``x = |w|^2``: ``(1 - t sin t / (2 (1 - cos t))) / t^2`` (``t = |w|``), its series
+    below the small-angle threshold; ``(...) -> (...)``."""
+    small = x < _SMALL_ANGLE_SQ
+    safe_x = jnp.where(small, jnp.ones_like(x), x)
+    t = jnp.sqrt(safe_x)
+    # 1 - cos t = 2 sin^2(t/2) avoids cancellation.
+    exact = (1.0 - 0.5 * t * jnp.sin(t) / (2.0 * jnp.sin(0.5 * t) ** 2)) / safe_x
+    taylor = 1.0 / 12.0 + x / 720.0 + x * x / 30240.0 + x * x * x / 1209600.0
+    return jnp.where(small, taylor, exact)
 
 
 @_compiled_when_eager
@@ -294,8 +312,11 @@ def se3_exp(xi: ArrayLike) -> Array:
 def se3_log(T: ArrayLike) -> Array:
     """Twist ``(v, w)`` of a pose (Eq. 27, made robust near pi): ``(..., 4, 4) -> (..., 6)``."""
     T = _shaped(T, (4, 4), "se3_log", "T")
-    w = so3_log(T[..., :3, :3])
-    v = _matvec3(so3_left_jacobian_inverse(w), T[..., :3, 3])
+    w, x = _quaternion_log(rotation_to_quaternion(T[..., :3, :3]))
+    # v = A^-1 p = p - (w x p) / 2 + c w x (w x p)
+    p = T[..., :3, 3]
+    wxp = jnp.cross(w, p)
+    v = p - 0.5 * wxp + _jacobian_inverse_coefficient(x)[..., None] * jnp.cross(w, wxp)
     return jnp.concatenate([v, w], axis=-1)
 
 
