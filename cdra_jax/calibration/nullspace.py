@@ -39,6 +39,9 @@ iterate (:func:`null_basis`, a few 6x6 products and the QR of an ``(n, k)`` matr
 
 from __future__ import annotations
 
+import functools
+import operator
+
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -93,7 +96,8 @@ def null_directions(frames: ArrayLike, modules: tuple[int, ...], xi: ArrayLike) 
     # element-wise (under ``vmap`` a matrix product is a call of its own)
     columns = jnp.unstack(lie.adjoint(frames[idx]), axis=-1)
     components = jnp.unstack(xi[:, :, None], axis=1)
-    moved = -sum(c * x for c, x in zip(columns, components, strict=True))
+    products = [c * x for c, x in zip(columns, components, strict=True)]
+    moved = -functools.reduce(operator.add, products)
     # Placed by selects on fixed masks: under ``vmap`` a scatter is a loop of its own.
     block = np.arange(k1)[None, :, None]
     at_module, after_module = block == idx[:, None, None], block == idx[:, None, None] + 1
@@ -146,8 +150,8 @@ def orthonormalise(A: ArrayLike) -> Array:
     A = jnp.asarray(A)
     k = A.shape[-1]
     if not unrolled(k):
-        Q, R = jnp.linalg.qr(A)
-        return Q * jnp.where(jnp.diagonal(R) < 0, -1.0, 1.0).astype(A.dtype)
+        Q, upper = jnp.linalg.qr(A)
+        return Q * jnp.where(jnp.diagonal(upper) < 0, -1.0, 1.0).astype(A.dtype)
     if not k:
         return A
     a = jnp.unstack(A, axis=-1)
