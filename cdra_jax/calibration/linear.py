@@ -249,12 +249,17 @@ def null_space_solve(
     factorisation (no pivoting, no rank decision).
 
     The system is solved with the symmetric diagonal (Jacobi) scaling ``S = diag(N)^-1/2``:
-    ``N_s = S N S`` has a unit diagonal, its null space is spanned by ``S^-1 Z`` (orthonormalised
-    to ``Z_s``, so that ``A_s = N_s + Z_s Z_s^T`` has eigenvalue 1 there, the mean eigenvalue of
-    ``N_s``), and ``x = S A_s^-1 S g``, then the component along ``Z`` is projected out (it is
-    null for ``N``: only the scaled metric made it non-zero). Unscaled, the millimetre and
-    radian columns of the CDRA's ``N`` differ by ``|p|^2 ~ 1e6`` and an unpivoted factorisation
-    lost up to ``1e-8`` relative accuracy where the scaled one keeps ``1e-11`` (7-pose sets).
+    ``N_s = S N S`` has a unit diagonal, its null space is spanned by the columns of ``S^-1 Z``,
+    normalised to ``Z_s``, so that ``A_s = N_s + Z_s Z_s^T`` has eigenvalues near 1 there, the
+    mean eigenvalue of ``N_s`` (those of ``Z_s^T Z_s``: 1 for orthogonal columns, 0.002 to 3
+    for the null bases of random arms, far above the smallest identifiable eigenvalues of
+    ``N_s``; any basis of the null space gives the same ``x``, so the columns are not
+    orthogonalised; above :data:`~cdra_jax.calibration.nullspace.UNROLLED_COLUMNS` columns
+    they are, by a QR), and ``x = S A_s^-1 S g``, then the component along ``Z`` is projected
+    out (it is null for ``N``: only the scaled metric made it non-zero). Unscaled, the
+    millimetre and radian columns of the CDRA's ``N`` differ by ``|p|^2 ~ 1e6`` and an
+    unpivoted factorisation lost up to ``1e-8`` relative accuracy where the scaled one keeps
+    ``1e-11`` (7-pose sets).
 
     Whether this step can be trusted is returned with it, cheaply: ``lambda_min(A_s)`` by two
     steps of inverse iteration from a fixed vector ``u`` with components along every direction
@@ -305,7 +310,11 @@ def null_space_solve(
     d = jnp.sqrt(jnp.diagonal(N))
     s = 1.0 / d
     A = N * s[:, None] * s[None, :]
-    Zs = orthonormalise(Z * d[:, None]) if k else Z
+    if unrolled(k):
+        Zs = Z * d[:, None]
+        Zs = Zs * jax.lax.rsqrt(jnp.sum(Zs * Zs, axis=0))
+    else:
+        Zs = orthonormalise(Z * d[:, None])
     if not k:
         A_aug = A
     elif unrolled(k):
