@@ -15,7 +15,16 @@ script compiles the vmapped paper or LM solver (the paper's problem, 4,096 noise
   of each;
 * the child's trace, lowering and XLA compile times (wall and CPU), for orientation only.
 
+With ``--instructions`` it counts instead the machine instructions that the compilation
+executes, under valgrind (``cachegrind --cache-sim=no``, about 20x slower, four minutes): a
+child that only imports and builds the solver, one that also traces and lowers it, and one
+that also compiles it, so that the differences are the instructions of tracing and lowering
+and of XLA. The counts repeat to about 0.3 % from run to run, whatever else the machine
+runs: the measure to compare two versions of the code by, where compile times on a shared
+machine scatter by 10-15 %.
+
     python benchmarks/compile_split.py [--solver paper|lm] [--top 15] [--json]
+    python benchmarks/compile_split.py --instructions [--solver paper|lm] [--json]
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ import glob
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -52,6 +62,67 @@ t3, c3 = time.perf_counter(), time.process_time()
 print(json.dumps(dict(trace_s=t1 - t0, lower_s=t2 - t1, xla_s=t3 - t2, trace_lower_cpu_s=c2 - c0,
                       xla_cpu_s=c3 - c2)))
 """
+
+
+_INSTRUCTION_CHILD = r"""
+import sys
+sys.path.insert(0, {root!r})
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import cdra_jax as cj
+arm = cj.default_arm()
+q = jax.ShapeDtypeStruct((4096, 15, arm.dof), jnp.float64)
+T = jax.ShapeDtypeStruct((4096, 15, 4, 4), jnp.float64)
+solve = {{"paper": cj.calibrate_paper, "lm": cj.calibrate_lm}}[{solver!r}]
+f = cj.jit(jax.vmap(lambda q, T: solve(arm, q, T, throw=False)))
+stage = {stage!r}
+if stage == "lower":
+    f.lower(q, T)
+elif stage == "compile":
+    f.lower(q, T).compile()
+"""
+
+_STAGES = ("import", "lower", "compile")
+"""The children of ``--instructions``: import and build the solver; also trace and lower it;
+also compile it."""
+
+
+def _instructions(valgrind_output: str) -> int:
+    """The instruction count (``I refs``) of a cachegrind run's report."""
+    m = re.search(r"I\s+refs:\s+([\d,]+)", valgrind_output)
+    if m is None:
+        raise RuntimeError(f"no instruction count in valgrind's output:\n{valgrind_output[-2000:]}")
+    return int(m.group(1).replace(",", ""))
+
+
+def count_instructions(solver: str) -> dict:
+    """Instructions executed to import, to trace and lower, and to compile the vmapped solver
+    (``--instructions``; needs valgrind)."""
+    valgrind = shutil.which("valgrind")
+    if valgrind is None:
+        raise SystemExit("--instructions needs valgrind (e.g. apt install valgrind)")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    counts = {}
+    for stage in _STAGES:
+        code = _INSTRUCTION_CHILD.format(root=root, solver=solver, stage=stage)
+        done = subprocess.run(
+            [valgrind, "--tool=cachegrind", "--cache-sim=no", "--cachegrind-out-file=/dev/null"]
+            + [os.path.realpath(sys.executable), "-c", code],
+            env=env,
+            capture_output=True,
+            text=True,
+        )
+        if done.returncode:
+            raise RuntimeError(f"the {stage} child failed:\n{done.stderr[-2000:]}")
+        counts[stage] = _instructions(done.stderr)
+    return dict(
+        solver=solver,
+        instructions=counts,
+        trace_and_lower=counts["lower"] - counts["import"],
+        xla=counts["compile"] - counts["lower"],
+    )
 
 
 def _functions(path: str) -> dict[str, int]:
@@ -167,7 +238,22 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--solver", choices=("paper", "lm"), default="paper")
     parser.add_argument("--top", type=int, default=15, help="package functions listed")
     parser.add_argument("--json", action="store_true", help="print one JSON object last")
+    parser.add_argument(
+        "--instructions",
+        action="store_true",
+        help="count the instructions of tracing, lowering and compiling, under valgrind",
+    )
     args = parser.parse_args(argv)
+    if args.instructions:
+        r = count_instructions(args.solver)
+        print(
+            f"{r['solver']}: {r['trace_and_lower'] / 1e9:.2f} G instructions to trace and "
+            f"lower, {r['xla'] / 1e9:.2f} G to compile (XLA); the import and the solver's "
+            f"construction {r['instructions']['import'] / 1e9:.2f} G"
+        )
+        if args.json:
+            print(json.dumps(r))
+        return r
     r = measure(args.solver, args.top)
     print(
         f"{r['solver']}: {r['llvm_modules']} LLVM modules ({r['modules_outside_parts']} outside "

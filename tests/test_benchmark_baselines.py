@@ -230,3 +230,13 @@ def test_compile_split_counts_ir_lines_and_finds_the_package_frame(tmp_path):
     )
     assert lines == {"lie.py:so3_exp": 2, "(made by XLA)": 6}
     assert kernels == {"lie.py:so3_exp": 1, "(made by XLA)": 2}
+
+
+def test_compile_split_reads_valgrinds_instruction_count():
+    """benchmarks/compile_split.py --instructions: the count of cachegrind's report (with its
+    thousands separators), and a clear error where the report has none."""
+    split = _load("compile_split")
+    report = "==12== Cachegrind, a cache profiler\n==12== \n==12== I   refs:      22,035,659,986\n"
+    assert split._instructions(report) == 22_035_659_986
+    with pytest.raises(RuntimeError, match="no instruction count"):
+        split._instructions("valgrind: command not found")
