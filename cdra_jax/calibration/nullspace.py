@@ -138,8 +138,8 @@ def orthonormalise(A: ArrayLike) -> Array:
     matrix ``A^T A = R^T R`` (``k (k + 1) / 2`` sums of products), its Cholesky factor unrolled
     on scalars, and ``Q = A R^-1`` by substitution over the columns. Every step is element-wise
     work that XLA fuses, with one reduction per Gram entry (Gram-Schmidt chains a reduction per
-    projection, each waiting for the previous one): for the paper solver 11 kernels and 1,800
-    lines of IR where Gram-Schmidt twice took 15 and 2,760 (``benchmarks/compile_split.py``).
+    projection, each waiting for the previous one): fewer kernels and a third less IR than
+    Gram-Schmidt twice (``benchmarks/README.md``, *What XLA compiles*).
     The loss of orthogonality grows as the square of the condition number of ``A`` with its
     columns equilibrated (the Cholesky factorisation's error does not depend on their scales):
     for the null bases it is below 40 (the columns are nearly orthogonal), and ``Q^T Q``
