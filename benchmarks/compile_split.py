@@ -1,7 +1,7 @@
 """What XLA:CPU compiles for the vmapped solvers: LLVM modules, IR lines, and where they come from.
 
 Compile time is noisy on a shared machine; the size of what XLA hands to LLVM is not. This
-script compiles the vmapped paper or LM solver (the paper's problem, 4,096 noise-free trials of
+script compiles the vmapped paper or LM solver (the paper's problem, batches of 4,096 trials of
 15 poses, the package's compile options) in a child process that dumps XLA's output
 (``XLA_FLAGS=--xla_dump_to``), and reports, deterministically for a given jax version:
 
@@ -40,32 +40,8 @@ import subprocess
 import sys
 import tempfile
 
-_CHILD = r"""
+_SETUP = r"""
 import json, sys, time
-sys.path.insert(0, {root!r})
-import jax
-jax.config.update("jax_enable_x64", True)
-import cdra_jax as cj
-from cdra_jax import simulation
-arm = cj.default_arm()
-keys = jax.random.split(jax.random.PRNGKey(0), 4096)
-q, T, *_ = jax.jit(jax.vmap(lambda k: simulation.simulate_trial(k, arm, 15)))(keys)
-solve = {{"paper": cj.calibrate_paper, "lm": cj.calibrate_lm}}[{solver!r}]
-f = cj.jit(jax.vmap(lambda q, T: solve(arm, q, T, throw=False)))
-t0, c0 = time.perf_counter(), time.process_time()
-traced = f.trace(q, T)
-t1 = time.perf_counter()
-lowered = traced.lower()
-t2, c2 = time.perf_counter(), time.process_time()
-lowered.compile()
-t3, c3 = time.perf_counter(), time.process_time()
-print(json.dumps(dict(trace_s=t1 - t0, lower_s=t2 - t1, xla_s=t3 - t2, trace_lower_cpu_s=c2 - c0,
-                      xla_cpu_s=c3 - c2)))
-"""
-
-
-_INSTRUCTION_CHILD = r"""
-import sys
 sys.path.insert(0, {root!r})
 import jax
 jax.config.update("jax_enable_x64", True)
@@ -76,12 +52,35 @@ q = jax.ShapeDtypeStruct((4096, 15, arm.dof), jnp.float64)
 T = jax.ShapeDtypeStruct((4096, 15, 4, 4), jnp.float64)
 solve = {{"paper": cj.calibrate_paper, "lm": cj.calibrate_lm}}[{solver!r}]
 f = cj.jit(jax.vmap(lambda q, T: solve(arm, q, T, throw=False)))
+"""
+"""The children's common start: the vmapped solver for the paper's problem (4,096 trials of
+15 poses, float64; the compiled program depends only on the shapes, so no data is made)."""
+
+_CHILD = (
+    _SETUP
+    + r"""
+t0, c0 = time.perf_counter(), time.process_time()
+traced = f.trace(q, T)
+t1 = time.perf_counter()
+lowered = traced.lower()
+t2, c2 = time.perf_counter(), time.process_time()
+lowered.compile()
+t3, c3 = time.perf_counter(), time.process_time()
+print(json.dumps(dict(trace_s=t1 - t0, lower_s=t2 - t1, xla_s=t3 - t2, trace_lower_cpu_s=c2 - c0,
+                      xla_cpu_s=c3 - c2)))
+"""
+)
+
+_INSTRUCTION_CHILD = (
+    _SETUP
+    + r"""
 stage = {stage!r}
 if stage == "lower":
     f.lower(q, T)
 elif stage == "compile":
     f.lower(q, T).compile()
 """
+)
 
 _STAGES = ("import", "lower", "compile")
 """The children of ``--instructions``: import and build the solver; also trace and lower it;
